@@ -1,0 +1,222 @@
+"""The in-memory dataset type that every loader returns.
+
+A dataset is a list of frame records (camera, time in seconds, view id, where the pixels come
+from). Pixels are decoded on first access and kept in a byte-bounded cache as the file's own
+dtype (uint8 for PNG/video), so opening a 5-view x 100-frame x 400x400 dataset costs a JSON
+parse and a few hundred ``stat`` calls, and each image is decoded once.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import InputError
+from .images import read_image, to_float
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """Where one image comes from: an image file, or frame ``frame_index`` of a video file."""
+
+    camera: Camera
+    time: float
+    view_id: int
+    file: Path
+    frame_index: int | None = None  # None: ``file`` is an image; otherwise a video frame
+    mask_file: Path | None = None
+
+
+@dataclass
+class Sample:
+    """One training image: ``image`` (H, W, C) float32 in [0, 1] with C = 1 or 3 (straight, not
+    premultiplied), ``alpha`` (H, W) or None, ``mask`` (H, W) or None."""
+
+    index: int
+    image: "object"
+    alpha: "object"
+    mask: "object"
+    camera: Camera
+    time: float
+    view_id: int
+
+    def composite(self, background):
+        """The image composited over ``background`` (C,) using its alpha (as a renderer sees it)."""
+        import torch
+
+        if self.alpha is None:
+            return self.image
+        bg = torch.as_tensor(background, dtype=self.image.dtype).reshape(1, 1, -1)
+        a = self.alpha[..., None]
+        return self.image * a + bg * (1.0 - a)
+
+
+class VideoDecodeError(InputError):
+    pass
+
+
+@dataclass
+class FluidDataset:
+    """Frames of a multiview fluid capture, with lazy decoding.
+
+    ``channels`` is 3 (RGB) or 1 (grayscale: one channel is kept everywhere downstream).
+    ``background_removal`` (grayscale footage): None, "difference" (|I - I_first|) or "xor"
+    (bitwise XOR of 8-bit values with the view's first frame, as the paper does for ScalarFlow).
+    """
+
+    frames: list[FrameRecord]
+    root: Path
+    channels: int = 3
+    background: tuple = (0.0, 0.0, 0.0)
+    background_removal: str | None = None
+    gt_file: Path | None = None
+    meta: dict = field(default_factory=dict)
+    cache_bytes: int = 4 << 30
+
+    def __post_init__(self):
+        if self.channels not in (1, 3):
+            raise ValueError(f"channels must be 1 or 3, got {self.channels}")
+        if self.background_removal not in (None, "difference", "xor"):
+            raise ValueError(f"unknown background_removal {self.background_removal!r}; "
+                             "use 'difference' or 'xor'")
+        self._cache: OrderedDict = OrderedDict()
+        self._cached = 0
+        # first frame (earliest time) of each view: the background reference
+        first: dict[int, int] = {}
+        for i, fr in enumerate(self.frames):
+            j = first.get(fr.view_id)
+            if j is None or fr.time < self.frames[j].time:
+                first[fr.view_id] = i
+        self._first_of_view = first
+
+    # ---- summary ---------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def views(self) -> list[int]:
+        return sorted({f.view_id for f in self.frames})
+
+    @property
+    def times(self) -> np.ndarray:
+        return np.array(sorted({f.time for f in self.frames}), np.float64)
+
+    @property
+    def time_range(self) -> tuple[float, float]:
+        t = [f.time for f in self.frames]
+        return (min(t), max(t)) if t else (0.0, 0.0)
+
+    def cameras(self) -> dict[int, Camera]:
+        """One camera per view id (the first frame's)."""
+        out: dict[int, Camera] = {}
+        for f in self.frames:
+            out.setdefault(f.view_id, f.camera)
+        return out
+
+    def indices(self, *, view_id: int | None = None, time: float | None = None) -> list[int]:
+        return [i for i, f in enumerate(self.frames)
+                if (view_id is None or f.view_id == view_id)
+                and (time is None or abs(f.time - time) < 1e-9)]
+
+    def ground_truth(self):
+        """The ground-truth particles (``SimData``) if the dataset carries them, else None."""
+        if self.gt_file is None:
+            return None
+        from ..io import read_sim
+
+        return read_sim(self.gt_file)
+
+    # ---- pixels ----------------------------------------------------------------------------------
+    def _remember(self, key, arr: np.ndarray) -> None:
+        self._cache[key] = arr
+        self._cache.move_to_end(key)
+        self._cached += arr.nbytes
+        while self._cached > self.cache_bytes and len(self._cache) > 1:
+            _, old = self._cache.popitem(last=False)
+            self._cached -= old.nbytes
+
+    def _raw(self, rec: FrameRecord) -> np.ndarray:
+        key = (rec.file, rec.frame_index)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        if rec.frame_index is None:
+            img = read_image(rec.file)
+            self._remember(key, img)
+        else:
+            from .video import decode_video
+
+            frames = decode_video(rec.file)
+            for k, fr in enumerate(frames):
+                self._remember((rec.file, k), fr)
+            if rec.frame_index >= len(frames):
+                raise VideoDecodeError(rec.file, f"frame {rec.frame_index} requested but the video "
+                                                 f"decodes to {len(frames)} frames")
+            img = frames[rec.frame_index]
+        cam = rec.camera
+        if img.shape[0] != cam.height or img.shape[1] != cam.width:
+            raise InputError(rec.file, f"image is {img.shape[1]}x{img.shape[0]} but its camera "
+                                       f"says {cam.width}x{cam.height}")
+        return img
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(image (H, W, C) float32 with C = ``channels``, alpha (H, W) or None) as numpy."""
+        rec = self.frames[i]
+        raw = self._raw(rec)
+        alpha = to_float(raw[:, :, 3]) if raw.shape[2] == 4 else None
+        color = raw[:, :, :3] if raw.shape[2] >= 3 else raw[:, :, :1]
+        if self.channels == 1:
+            if color.shape[2] == 3:  # Rec. 601 luma, in the file's dtype range
+                color = (color.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
+                color = np.rint(color).astype(raw.dtype) if raw.dtype.kind == "u" else color
+            if self.background_removal is not None:
+                color = self._remove_background(rec, color)
+        elif color.shape[2] == 1:
+            color = np.repeat(color, 3, axis=2)
+        return to_float(color), alpha
+
+    def _remove_background(self, rec: FrameRecord, color: np.ndarray) -> np.ndarray:
+        ref_rec = self.frames[self._first_of_view[rec.view_id]]
+        ref = self._raw(ref_rec)
+        ref = ref[:, :, :3] if ref.shape[2] >= 3 else ref[:, :, :1]
+        if ref.shape[2] == 3:
+            ref = (ref.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
+            ref = np.rint(ref).astype(color.dtype) if color.dtype.kind == "u" else ref
+        if self.background_removal == "xor":
+            if color.dtype.kind != "u":
+                raise InputError(rec.file, "XOR background removal needs integer (8/16-bit) images")
+            return np.bitwise_xor(color, ref.astype(color.dtype))
+        diff = np.abs(to_float(color) - to_float(ref.astype(color.dtype)))
+        return diff
+
+    def _mask(self, rec: FrameRecord) -> np.ndarray | None:
+        if rec.mask_file is None:
+            return None
+        m = read_image(rec.mask_file)
+        if m.shape[:2] != (rec.camera.height, rec.camera.width):
+            raise InputError(rec.mask_file, f"mask is {m.shape[1]}x{m.shape[0]} but its camera says "
+                                            f"{rec.camera.width}x{rec.camera.height}")
+        return to_float(m[:, :, -1] if m.shape[2] in (2, 4) else m[:, :, 0])
+
+    def __getitem__(self, i: int) -> Sample:
+        import torch
+
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame index {i} out of range for {len(self)} frames")
+        i = i % len(self)
+        rec = self.frames[i]
+        img, alpha = self.load(i)
+        mask = self._mask(rec)
+        return Sample(index=i, image=torch.from_numpy(img),
+                      alpha=None if alpha is None else torch.from_numpy(alpha),
+                      mask=None if mask is None else torch.from_numpy(mask),
+                      camera=rec.camera, time=rec.time, view_id=rec.view_id)
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]

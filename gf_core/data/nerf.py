@@ -1,0 +1,200 @@
+"""NeRF / D-NeRF ``transforms_{split}.json`` datasets, and the NeuroFluid per-view layout.
+
+transforms_{split}.json (top level, each key may be overridden per frame):
+  camera_angle_x | fl_x [fl_y] ; cx, cy (default W/2, H/2) ; w, h (default: the image's size)
+  fps (optional): time = frame_index / fps for frames without "time"
+  frames: [{file_path, transform_matrix (camera-to-world, OpenGL), time (seconds), view_id?,
+            mask_path?}]
+View ids: a frame's ``view_id`` (or ``camera_id``); otherwise frames with the same
+transform_matrix share a view, numbered in order of first appearance.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import InputError
+from .dataset import FluidDataset, FrameRecord
+from .images import png_size
+
+_IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
+
+
+def read_json(path: Path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file does not exist")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"malformed JSON: {e}") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object at the top level")
+    return data
+
+
+def resolve_image(root: Path, file_path: str, json_path: Path, what: str = "image") -> Path:
+    p = (root / file_path).resolve() if not Path(file_path).is_absolute() else Path(file_path)
+    if p.exists() and p.is_file():
+        return p
+    if not p.suffix or p.suffix.lower() not in _IMAGE_EXTS:
+        for ext in _IMAGE_EXTS:
+            q = p.with_name(p.name + ext)
+            if q.exists():
+                return q
+    raise InputError(p, f"{what} listed in {json_path} does not exist")
+
+
+def _num(d: dict, key: str, json_path: Path, where: str):
+    v = d.get(key)
+    if v is None:
+        return None
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+        raise InputError(json_path, f"{where}: {key!r} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int | None = None,
+                     fps: float | None = None, time_from_index: bool = False,
+                     check_sizes: bool = True):
+    """Frame records from one transforms JSON. Returns (records, json dict)."""
+    json_path = Path(json_path)
+    meta = read_json(json_path)
+    root = json_path.parent
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise InputError(json_path, "has no 'frames' list (or it is empty)")
+    fps = _num(meta, "fps", json_path, "top level") or fps
+    records: list[FrameRecord] = []
+    view_of_pose: dict[bytes, int] = {}
+    for k, fr in enumerate(frames):
+        where = f"frame {k}"
+        if not isinstance(fr, dict) or "file_path" not in fr:
+            raise InputError(json_path, f"{where}: missing 'file_path'")
+        if "transform_matrix" not in fr:
+            raise InputError(json_path, f"{where}: missing 'transform_matrix'")
+        c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        if c2w.shape == (3, 4):
+            c2w = np.vstack([c2w, [0, 0, 0, 1]])
+        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
+            raise InputError(json_path, f"{where}: transform_matrix must be a finite 4x4 matrix")
+        img = resolve_image(root, fr["file_path"], json_path)
+        merged = {**meta, **fr}
+        w, h = _num(merged, "w", json_path, where), _num(merged, "h", json_path, where)
+        size = png_size(img) if (check_sizes or w is None or h is None) else None
+        if w is None or h is None:
+            if size is None:
+                from .images import read_image
+
+                arr = read_image(img)
+                size = (arr.shape[1], arr.shape[0])
+            w, h = size
+        elif size is not None and size != (int(w), int(h)):
+            raise InputError(img, f"image is {size[0]}x{size[1]} but {json_path.name} says "
+                                  f"{int(w)}x{int(h)}")
+        fx = _num(merged, "fl_x", json_path, where)
+        fy = _num(merged, "fl_y", json_path, where)
+        angle = _num(merged, "camera_angle_x", json_path, where)
+        angle_y = _num(merged, "camera_angle_y", json_path, where)
+        if fx is None and fy is None and angle is None:
+            raise InputError(json_path, f"{where}: no focal length (need 'camera_angle_x' or 'fl_x')")
+        if (fx is not None and fx <= 0) or (fy is not None and fy <= 0) or \
+                (angle is not None and not 0 < angle < math.pi):
+            raise InputError(json_path, f"{where}: focal length must be positive "
+                                        f"(fl_x={fx}, fl_y={fy}, camera_angle_x={angle})")
+        try:
+            cam = Camera.from_blender(c2w, int(w), int(h), fx=fx, fy=fy,
+                                      cx=_num(merged, "cx", json_path, where),
+                                      cy=_num(merged, "cy", json_path, where),
+                                      camera_angle_x=angle, camera_angle_y=angle_y,
+                                      name=str(fr.get("camera_name", "")))
+        except InputError as e:
+            raise InputError(json_path, f"{where}: {e.problem}") from None
+        t = _num(fr, "time", json_path, where)
+        if t is None:
+            fidx = _num(fr, "frame", json_path, where)
+            if fidx is not None and fps:
+                t = fidx / fps
+            elif time_from_index and fps:
+                t = k / fps
+            else:
+                raise InputError(json_path, f"{where}: no 'time' (and no 'frame' with a top-level 'fps')")
+        if fixed_view is not None:
+            view = fixed_view
+        elif "view_id" in fr or "camera_id" in fr:
+            view = int(fr.get("view_id", fr.get("camera_id"))) + view_offset
+        else:
+            key = np.round(c2w, 6).tobytes()
+            view = view_of_pose.setdefault(key, len(view_of_pose) + view_offset)
+        mask = fr.get("mask_path")
+        mask = resolve_image(root, mask, json_path, "mask") if mask else None
+        records.append(FrameRecord(camera=cam, time=t, view_id=view, file=img, mask_file=mask))
+    return records, meta
+
+
+def _gt_file(root: Path, meta: dict, json_path: Path) -> Path | None:
+    name = meta.get("gt_particles")
+    if name:
+        p = root / name
+        if not p.exists():
+            raise InputError(json_path, f"'gt_particles' names {p}, which does not exist")
+        return p
+    p = root / "gt_sim.h5"
+    return p if p.exists() else None
+
+
+def _background(meta: dict, channels: int) -> tuple:
+    bg = meta.get("background", [0.0, 0.0, 0.0])
+    bg = [float(bg)] * 3 if isinstance(bg, (int, float)) else [float(x) for x in bg]
+    return tuple(bg[:channels]) if channels == 1 else tuple(bg[:3])
+
+
+def load_nerf(root, split: str = "train", *, grayscale: bool = False,
+              background_removal: str | None = None) -> FluidDataset:
+    """A D-NeRF style dataset: ``root/transforms_{split}.json`` with per-frame ``time``."""
+    root = Path(root)
+    json_path = root / f"transforms_{split}.json"
+    records, meta = parse_transforms(json_path)
+    ch = 1 if grayscale else 3
+    return FluidDataset(frames=records, root=root, channels=ch,
+                        background=_background(meta, ch), background_removal=background_removal,
+                        gt_file=_gt_file(root, meta, json_path),
+                        meta={"layout": "nerf", "split": split})
+
+
+def load_neurofluid(root, split: str = "train", *, fps: float | None = None,
+                    grayscale: bool = False) -> FluidDataset:
+    """The NeuroFluid layout: ``root/view_k/transforms_{split}.json``, one camera per folder.
+
+    Frames without ``time`` get time = index / fps; with no fps given the clip is taken to span
+    one second (the NeuroFluid scenes are one-second clips): time = index / (n_frames - 1).
+    """
+    root = Path(root)
+    view_dirs = sorted((d for d in root.glob("view_*") if d.is_dir()),
+                       key=lambda d: int(d.name.split("_")[1]) if d.name.split("_")[1].isdigit() else 1 << 30)
+    if not view_dirs:
+        raise InputError(root, "no view_k/ folders found (NeuroFluid layout)")
+    records: list[FrameRecord] = []
+    gt = None
+    for d in view_dirs:
+        try:
+            k = int(d.name.split("_")[1])
+        except ValueError:
+            raise InputError(d, "view folder name must be view_<integer>") from None
+        json_path = d / f"transforms_{split}.json"
+        meta = read_json(json_path)
+        n = len(meta.get("frames") or [])
+        view_fps = fps or (float(meta["fps"]) if "fps" in meta else (max(n - 1, 1)))
+        # NeuroFluid frames carry no time: they are numbered in file order
+        recs, meta = parse_transforms(json_path, fixed_view=k, fps=view_fps, time_from_index=True)
+        records.extend(recs)
+        gt = gt or _gt_file(d, meta, json_path)
+    ch = 1 if grayscale else 3
+    return FluidDataset(frames=records, root=root, channels=ch, gt_file=gt or _gt_file(root, {}, root),
+                        meta={"layout": "neurofluid", "split": split})

@@ -1,0 +1,22 @@
+"""Errors that name the file (or object) and the problem."""
+
+from __future__ import annotations
+
+import os
+
+
+class GFError(Exception):
+    """Base class of every error the toolkit raises on purpose."""
+
+
+class InputError(GFError, ValueError):
+    """Bad input: ``<where>: <problem>``. ``where`` is usually a file path."""
+
+    def __init__(self, where: "str | os.PathLike[str]", problem: str):
+        self.where = str(where)
+        self.problem = problem
+        super().__init__(f"{self.where}: {problem}")
+
+
+class FormatError(InputError):
+    """A file is not of the expected format or version, or fails validation."""

@@ -1,0 +1,369 @@
+"""File formats: ``sim.h5`` (simulated particles) and ``recon.h5`` (a reconstruction).
+
+Both are HDF5, self-describing (root attributes ``format`` and ``version``), validated on read
+(format, version, required fields, shapes, finite values) and written atomically: the data go to
+a temporary file beside the target, which is renamed over it only when complete, so a killed run
+never leaves a half-written file that looks complete. Nothing is ever loaded with pickle.
+The schemas are documented in ``docs/formats.md``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FormatError, InputError
+
+SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
+RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 1
+
+
+# ---- helpers -------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def atomic_path(path: "str | os.PathLike[str]"):
+    """Yield a temporary path next to ``path``; rename it onto ``path`` if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def atomic_write_text(path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
+
+
+def _h5():
+    import h5py
+
+    return h5py
+
+
+def _open_checked(path, fmt: str, version: int):
+    """Open an HDF5 file for reading and check its format/version attributes."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file does not exist")
+    h5py = _h5()
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise FormatError(path, f"not a readable HDF5 file ({e})") from None
+    got_fmt = f.attrs.get("format")
+    got_fmt = got_fmt.decode() if isinstance(got_fmt, bytes) else got_fmt
+    if got_fmt != fmt:
+        f.close()
+        raise FormatError(path, f"expected format {fmt!r}, found {got_fmt!r}")
+    got_ver = int(f.attrs.get("version", -1))
+    if got_ver != version:
+        f.close()
+        raise FormatError(path, f"{fmt} version {got_ver} is not supported (this toolkit reads "
+                                f"version {version})")
+    return f
+
+
+def _read(f, name: str, path, *, ndim: int | None = None, shape_tail: tuple | None = None,
+          dtype=np.float32, finite: bool = True) -> np.ndarray:
+    if name not in f:
+        raise FormatError(path, f"missing dataset {name!r}")
+    a = np.asarray(f[name][()])
+    if ndim is not None and a.ndim != ndim:
+        raise FormatError(path, f"dataset {name!r} must have {ndim} dimensions, has shape {a.shape}")
+    if shape_tail is not None and tuple(a.shape[-len(shape_tail):]) != tuple(shape_tail):
+        raise FormatError(path, f"dataset {name!r} must have shape (..., "
+                                f"{', '.join(map(str, shape_tail))}), has {a.shape}")
+    a = a.astype(dtype, copy=False)
+    if finite and not np.all(np.isfinite(a)):
+        bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+        raise FormatError(path, f"dataset {name!r} contains {bad} NaN or infinite values")
+    return a
+
+
+def _attr(f, name: str, path, cast=float):
+    if name not in f.attrs:
+        raise FormatError(path, f"missing attribute {name!r}")
+    v = f.attrs[name]
+    if isinstance(v, bytes):
+        v = v.decode()
+    try:
+        v = cast(v)
+    except (TypeError, ValueError):
+        raise FormatError(path, f"attribute {name!r} has an invalid value {v!r}") from None
+    if cast is float and not np.isfinite(v):
+        raise FormatError(path, f"attribute {name!r} is not finite ({v})")
+    return v
+
+
+def _json_attr(f, name: str, path) -> dict:
+    raw = f.attrs.get(name, "{}")
+    raw = raw.decode() if isinstance(raw, bytes) else str(raw)
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError as e:
+        raise FormatError(path, f"attribute {name!r} is not valid JSON ({e})") from None
+
+
+def _check_finite(name: str, a: np.ndarray, where: str) -> None:
+    if not np.all(np.isfinite(a)):
+        raise InputError(where, f"{name} contains NaN or infinite values; refusing to write")
+
+
+# ---- sim.h5 --------------------------------------------------------------------------------------
+@dataclass
+class SimData:
+    """Particles per frame from a simulator (or a reconstruction's continuation).
+
+    positions, velocities: (F, N, 3) float32, metres and m/s; times: (F,) seconds.
+    """
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    fps: float
+    particle_radius: float
+    rest_density: float = 1000.0
+    viscosity: float = 0.0
+    gravity: tuple = (0.0, 0.0, -9.81)
+    solver: str = ""
+    domain_min: tuple = (0.0, 0.0, 0.0)
+    domain_max: tuple = (1.0, 1.0, 1.0)
+    scene: str = ""
+    times: np.ndarray | None = None
+    config: dict = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)  # per-frame arrays, e.g. density_error_mean (F,)
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, np.float32)
+        self.velocities = np.asarray(self.velocities, np.float32)
+        if self.positions.ndim != 3 or self.positions.shape[-1] != 3:
+            raise InputError("sim data", f"positions must be (frames, particles, 3), got {self.positions.shape}")
+        if self.velocities.shape != self.positions.shape:
+            raise InputError("sim data", f"velocities {self.velocities.shape} must match positions {self.positions.shape}")
+        if self.times is None:
+            self.times = np.arange(self.positions.shape[0], dtype=np.float64) / float(self.fps)
+        self.times = np.asarray(self.times, np.float64)
+        if self.times.shape != (self.positions.shape[0],):
+            raise InputError("sim data", f"times must be ({self.positions.shape[0]},), got {self.times.shape}")
+
+    @property
+    def num_frames(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def num_particles(self) -> int:
+        return self.positions.shape[1]
+
+
+def write_sim(path, sim: SimData) -> Path:
+    """Write ``sim`` to ``path`` atomically. Refuses NaN/inf data."""
+    path = Path(path)
+    _check_finite("positions", sim.positions, str(path))
+    _check_finite("velocities", sim.velocities, str(path))
+    h5py = _h5()
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = SIM_FORMAT
+            f.attrs["version"] = SIM_VERSION
+            f.attrs["fps"] = float(sim.fps)
+            f.attrs["particle_radius"] = float(sim.particle_radius)
+            f.attrs["rest_density"] = float(sim.rest_density)
+            f.attrs["viscosity"] = float(sim.viscosity)
+            f.attrs["gravity"] = np.asarray(sim.gravity, np.float64)
+            f.attrs["solver"] = sim.solver
+            f.attrs["scene"] = sim.scene
+            f.attrs["domain_min"] = np.asarray(sim.domain_min, np.float64)
+            f.attrs["domain_max"] = np.asarray(sim.domain_max, np.float64)
+            f.attrs["config"] = json.dumps(sim.config)
+            comp = dict(compression="gzip", compression_opts=1) if sim.positions.size > 30000 else {}
+            f.create_dataset("positions", data=sim.positions, **comp)
+            f.create_dataset("velocities", data=sim.velocities, **comp)
+            f.create_dataset("times", data=sim.times)
+            g = f.create_group("stats")
+            for k, v in sim.stats.items():
+                g.create_dataset(k, data=np.asarray(v))
+    return path
+
+
+def read_sim(path) -> SimData:
+    """Read and validate a ``sim.h5``; errors name the file and the problem."""
+    with _open_checked(path, SIM_FORMAT, SIM_VERSION) as f:
+        pos = _read(f, "positions", path, ndim=3, shape_tail=(3,))
+        vel = _read(f, "velocities", path, ndim=3, shape_tail=(3,))
+        if vel.shape != pos.shape:
+            raise FormatError(path, f"velocities {vel.shape} do not match positions {pos.shape}")
+        times = _read(f, "times", path, ndim=1, dtype=np.float64)
+        if times.shape[0] != pos.shape[0]:
+            raise FormatError(path, f"{times.shape[0]} times for {pos.shape[0]} frames")
+        fps = _attr(f, "fps", path)
+        radius = _attr(f, "particle_radius", path)
+        if fps <= 0 or radius <= 0:
+            raise FormatError(path, f"fps ({fps}) and particle_radius ({radius}) must be positive")
+        gravity = _read_vec_attr(f, "gravity", path)
+        dmin, dmax = _read_vec_attr(f, "domain_min", path), _read_vec_attr(f, "domain_max", path)
+        if np.any(dmax <= dmin):
+            raise FormatError(path, f"domain_max {dmax.tolist()} must exceed domain_min {dmin.tolist()}")
+        stats = {k: np.asarray(v[()]) for k, v in f["stats"].items()} if "stats" in f else {}
+        return SimData(positions=pos, velocities=vel, fps=fps, particle_radius=radius,
+                       rest_density=_attr(f, "rest_density", path),
+                       viscosity=_attr(f, "viscosity", path), gravity=tuple(gravity.tolist()),
+                       solver=_attr(f, "solver", path, str), domain_min=tuple(dmin.tolist()),
+                       domain_max=tuple(dmax.tolist()), scene=_attr(f, "scene", path, str),
+                       times=times, config=_json_attr(f, "config", path), stats=stats)
+
+
+def _read_vec_attr(f, name, path) -> np.ndarray:
+    if name not in f.attrs:
+        raise FormatError(path, f"missing attribute {name!r}")
+    v = np.asarray(f.attrs[name], np.float64)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise FormatError(path, f"attribute {name!r} must be 3 finite numbers, got {v.tolist()}")
+    return v
+
+
+# ---- recon.h5 ------------------------------------------------------------------------------------
+@dataclass
+class DecoderData:
+    """Weights of the time-continuous decoder Phi (paper Eq. 4) and its input encoding.
+
+    layers: list of (weight (out, in), bias (out,)) as in ``torch.nn.Linear``; ReLU between layers.
+    features: per-particle transform features theta, (N, N_theta).
+    encoding: {"n_freqs": L, "include_input": bool} -- tau = [t, sin(2^k pi t), cos(2^k pi t)].
+    outputs: ordered {name: width}, e.g. {"dp": 3, "ds": 3, "dr": 4}.
+    """
+
+    features: np.ndarray
+    layers: list
+    encoding: dict
+    outputs: dict
+    activation: str = "relu"
+
+
+@dataclass
+class ReconData:
+    """A reconstruction: canonical Gaussian particles, optional decoder, time normalisation."""
+
+    means: np.ndarray          # (N, 3)
+    log_scales: np.ndarray     # (N, 3)
+    quats: np.ndarray          # (N, 4) w, x, y, z (not necessarily normalised)
+    logit_opacity: np.ndarray  # (N,)
+    sh: np.ndarray             # (N, (degree+1)^2, channels)
+    time_min: float = 0.0
+    time_max: float = 1.0
+    decoder: DecoderData | None = None
+    config: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+
+    @property
+    def num_particles(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+
+    @property
+    def channels(self) -> int:
+        return self.sh.shape[2]
+
+
+_CANONICAL = (("means", (3,)), ("log_scales", (3,)), ("quats", (4,)))
+
+
+def _check_recon(r: ReconData, where) -> None:
+    n = r.means.shape[0] if r.means.ndim == 2 else -1
+    for name, tail in _CANONICAL:
+        a = getattr(r, name)
+        if a.shape != (n,) + tail:
+            raise FormatError(where, f"{name} must have shape ({n}, {tail[0]}), got {a.shape}")
+    if r.logit_opacity.shape != (n,):
+        raise FormatError(where, f"logit_opacity must have shape ({n},), got {r.logit_opacity.shape}")
+    if r.sh.ndim != 3 or r.sh.shape[0] != n or r.sh.shape[2] not in (1, 3):
+        raise FormatError(where, f"sh must have shape ({n}, (degree+1)^2, 1 or 3), got {r.sh.shape}")
+    k = r.sh.shape[1]
+    if k not in (1, 4, 9, 16):
+        raise FormatError(where, f"sh has {k} coefficients per channel; expected 1, 4, 9 or 16 (degree 0-3)")
+    if not (np.isfinite(r.time_min) and np.isfinite(r.time_max) and r.time_max > r.time_min):
+        raise FormatError(where, f"time normalisation [{r.time_min}, {r.time_max}] is invalid")
+    if r.decoder is not None:
+        d = r.decoder
+        if d.features.ndim != 2 or d.features.shape[0] != n:
+            raise FormatError(where, f"decoder features must be ({n}, N_theta), got {d.features.shape}")
+        if not d.layers:
+            raise FormatError(where, "decoder has no layers")
+        width = None
+        for i, (w, b) in enumerate(d.layers):
+            if w.ndim != 2 or b.shape != (w.shape[0],) or (width is not None and w.shape[1] != width):
+                raise FormatError(where, f"decoder layer {i} has inconsistent shapes {w.shape}, {b.shape}")
+            width = w.shape[0]
+        if width != sum(d.outputs.values()):
+            raise FormatError(where, f"decoder output width {width} != sum of outputs {d.outputs}")
+    for name in ("means", "log_scales", "quats", "logit_opacity", "sh"):
+        if not np.all(np.isfinite(getattr(r, name))):
+            raise FormatError(where, f"{name} contains NaN or infinite values")
+
+
+def write_recon(path, r: ReconData) -> Path:
+    path = Path(path)
+    _check_recon(r, str(path))
+    h5py = _h5()
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = RECON_FORMAT
+            f.attrs["version"] = RECON_VERSION
+            f.attrs["time_min"] = float(r.time_min)
+            f.attrs["time_max"] = float(r.time_max)
+            f.attrs["config"] = json.dumps(r.config)
+            f.attrs["metrics"] = json.dumps(r.metrics)
+            g = f.create_group("canonical")
+            for name in ("means", "log_scales", "quats", "logit_opacity", "sh"):
+                g.create_dataset(name, data=np.asarray(getattr(r, name), np.float32))
+            g.attrs["sh_degree"] = r.sh_degree
+            g.attrs["channels"] = r.channels
+            if r.decoder is not None:
+                d = f.create_group("decoder")
+                d.create_dataset("features", data=np.asarray(r.decoder.features, np.float32))
+                d.attrs["num_layers"] = len(r.decoder.layers)
+                d.attrs["encoding"] = json.dumps(r.decoder.encoding)
+                d.attrs["outputs"] = json.dumps(r.decoder.outputs)
+                d.attrs["activation"] = r.decoder.activation
+                for i, (w, b) in enumerate(r.decoder.layers):
+                    d.create_dataset(f"layer{i}/weight", data=np.asarray(w, np.float32))
+                    d.create_dataset(f"layer{i}/bias", data=np.asarray(b, np.float32))
+    return path
+
+
+def read_recon(path) -> ReconData:
+    with _open_checked(path, RECON_FORMAT, RECON_VERSION) as f:
+        if "canonical" not in f:
+            raise FormatError(path, "missing group 'canonical'")
+        g = f["canonical"]
+        arrays = {name: _read(g, name, path, finite=False)
+                  for name in ("means", "log_scales", "quats", "logit_opacity", "sh")}
+        decoder = None
+        if "decoder" in f:
+            d = f["decoder"]
+            n_layers = _attr(d, "num_layers", path, int)
+            layers = [(_read(d, f"layer{i}/weight", path, ndim=2), _read(d, f"layer{i}/bias", path, ndim=1))
+                      for i in range(n_layers)]
+            decoder = DecoderData(features=_read(d, "features", path, ndim=2), layers=layers,
+                                  encoding=_json_attr(d, "encoding", path),
+                                  outputs=_json_attr(d, "outputs", path),
+                                  activation=_attr(d, "activation", path, str))
+        r = ReconData(**arrays, time_min=_attr(f, "time_min", path),
+                      time_max=_attr(f, "time_max", path), decoder=decoder,
+                      config=_json_attr(f, "config", path), metrics=_json_attr(f, "metrics", path))
+    _check_recon(r, str(path))
+    return r

@@ -1,0 +1,222 @@
+"""Tiny datasets written to disk in every supported layout, loaded back exactly."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from gf_core.camera import Camera, frontal_arc
+from gf_core.data import load_dataset, load_grayscale, write_video
+from gf_core.data.images import write_png
+from gf_core.data.writers import frame_entry, write_nerf_dataset
+from gf_core.errors import InputError
+from gf_core.io import SimData, write_sim
+
+W, H, VIEWS, FRAMES, FPS = 24, 16, 3, 4, 30.0
+
+
+def rig():
+    return frontal_arc(VIEWS, radius=2.0, fx=20.0, width=W, height_px=H)
+
+
+def images(rng, channels=4):
+    return rng.integers(0, 256, size=(VIEWS, FRAMES, H, W, channels), dtype=np.uint8)
+
+
+def check(ds, cams, imgs, times, alpha=True):
+    assert len(ds) == VIEWS * FRAMES and ds.views == list(range(VIEWS))
+    assert np.allclose(ds.times, times)
+    for s in ds:
+        v = s.view_id
+        f = int(np.argmin(np.abs(times - s.time)))
+        assert s.camera.allclose(cams[v], atol=1e-9), (s.camera, cams[v])
+        expect = imgs[v, f].astype(np.float32) / 255.0
+        assert torch.equal(s.image, torch.from_numpy(np.ascontiguousarray(expect[..., :3])))
+        if alpha:
+            assert torch.equal(s.alpha, torch.from_numpy(np.ascontiguousarray(expect[..., 3])))
+
+
+def test_nerf_layout_round_trip(tmp_path, rng):
+    cams, imgs = rig(), images(rng)
+    times = np.arange(FRAMES) / FPS
+    flat = [(imgs[v, f], cams[v], times[f], v) for f in range(FRAMES) for v in range(VIEWS)]
+    write_nerf_dataset(tmp_path, "train", *zip(*flat), fps=FPS)
+    ds = load_dataset(tmp_path)
+    assert ds.meta["layout"] == "nerf" and ds.channels == 3
+    check(ds, cams, imgs, times)
+
+
+def test_nerf_camera_angle_x_and_implicit_views(tmp_path, rng):
+    """Plain NeRF json: global camera_angle_x, no view_id, no w/h (taken from the PNG)."""
+    cams, imgs = rig(), images(rng)
+    frames = []
+    for f in range(FRAMES):
+        for v in range(VIEWS):
+            write_png(tmp_path / f"r_{v}_{f}.png", imgs[v, f])
+            frames.append({"file_path": f"./r_{v}_{f}", "time": f / FPS,
+                           "transform_matrix": cams[v].to_blender_c2w().tolist()})
+    (tmp_path / "transforms_train.json").write_text(
+        json.dumps({"camera_angle_x": cams[0].camera_angle_x, "frames": frames}))
+    ds = load_dataset(tmp_path)
+    check(ds, cams, imgs, np.arange(FRAMES) / FPS)
+
+
+def test_neurofluid_layout(tmp_path, rng):
+    cams, imgs = rig(), images(rng)
+    for v in range(VIEWS):
+        d = tmp_path / f"view_{v}"
+        frames = []
+        for f in range(FRAMES):
+            write_png(d / "train" / f"{f:03d}.png", imgs[v, f])
+            frames.append({"file_path": f"train/{f:03d}", "particle_path": f"{f:03d}.pkl",
+                           "transform_matrix": cams[v].to_blender_c2w().tolist()})
+        (d / "transforms_train.json").write_text(
+            json.dumps({"camera_angle_x": cams[v].camera_angle_x, "frames": frames}))
+    ds = load_dataset(tmp_path, fps=FPS)
+    assert ds.meta["layout"] == "neurofluid"
+    check(ds, cams, imgs, np.arange(FRAMES) / FPS)
+    # without fps: a one-second clip
+    assert np.allclose(load_dataset(tmp_path).times, np.linspace(0, 1, FRAMES))
+
+
+def write_video_layout(root, cams, imgs, fps=FPS, start=0.0, **extra):
+    entries = []
+    for v, cam in enumerate(cams):
+        write_video(root / f"cam{v}.mkv", imgs[v], fps)
+        entries.append({"video": f"cam{v}.mkv", "view_id": v,
+                        "transform_matrix": cam.to_blender_c2w().tolist(), "fl_x": cam.fx,
+                        "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, **extra})
+    (root / "cameras.json").write_text(json.dumps({"cameras": entries, "start_time": start}))
+
+
+def test_video_layout(tmp_path, rng):
+    cams, imgs = rig(), images(rng, channels=3)
+    write_video_layout(tmp_path, cams, imgs, start=0.5)
+    ds = load_dataset(tmp_path)
+    assert ds.meta["layout"] == "video"
+    check(ds, cams, imgs, 0.5 + np.arange(FRAMES) / FPS, alpha=False)
+
+
+def test_grayscale_background_removal(tmp_path, rng):
+    cams = rig()
+    bg = rng.integers(0, 120, size=(H, W), dtype=np.uint8)
+    gray = np.repeat(bg[None, None], FRAMES, 1).repeat(VIEWS, 0)
+    gray[:, 1:, 4:8, 5:9] += 100  # "smoke" appears after the first frame
+    write_video_layout(tmp_path, cams, np.repeat(gray[..., None], 3, -1))
+    ds = load_grayscale(tmp_path)
+    assert ds.channels == 1
+    s0, s2 = ds[ds.indices(view_id=1, time=0.0)[0]], ds[ds.indices(view_id=1, time=2 / FPS)[0]]
+    assert s0.image.shape == (H, W, 1) and float(s0.image.abs().max()) == 0.0
+    assert torch.allclose(s2.image[4:8, 5:9], torch.full((4, 4, 1), 100 / 255.0))
+    assert float(s2.image[:4].abs().max()) == 0.0
+    xor = load_grayscale(tmp_path, background_removal="xor")
+    expect = np.bitwise_xor(gray[1, 2], gray[1, 0]).astype(np.float32) / 255.0
+    assert np.array_equal(xor[xor.indices(view_id=1, time=2 / FPS)[0]].image[..., 0].numpy(), expect)
+
+
+def test_ground_truth_particles_attached(tmp_path, rng):
+    cams, imgs = rig(), images(rng)
+    flat = [(imgs[v, 0], cams[v], 0.0, v) for v in range(VIEWS)]
+    write_nerf_dataset(tmp_path, "train", *zip(*flat), extra={"gt_particles": "gt_sim.h5"})
+    pos = rng.uniform(size=(1, 10, 3))
+    write_sim(tmp_path / "gt_sim.h5", SimData(pos, np.zeros_like(pos), fps=FPS, particle_radius=0.01))
+    gt = load_dataset(tmp_path).ground_truth()
+    assert np.allclose(gt.positions, pos)
+
+
+def test_lazy_start_is_fast(tmp_path, rng):
+    """5 views x 100 frames x 400x400: opening must not decode anything."""
+    cam = Camera.look_at([0, -3, 0], [0, 0, 0], [0, 0, 1], fx=400, width=400, height=400)
+    img = np.zeros((400, 400, 4), np.uint8)
+    write_png(tmp_path / "img.png", img)
+    entries = [frame_entry("img.png", cam, f / 100.0, v) for f in range(100) for v in range(5)]
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": entries}))
+    t0 = time.perf_counter()
+    ds = load_dataset(tmp_path)
+    elapsed = time.perf_counter() - t0
+    assert len(ds) == 500 and elapsed < 5.0, elapsed
+    assert len(ds._cache) == 0
+
+
+# ---- bad input: every error names the file and the problem --------------------------------------
+def nerf_one(tmp_path, rng, **frame_overrides):
+    cams, imgs = rig(), images(rng)
+    write_png(tmp_path / "a.png", imgs[0, 0])
+    fr = frame_entry("a.png", cams[0], 0.0, 0)
+    fr.update(frame_overrides)
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": [fr]}))
+    return tmp_path / "transforms_train.json"
+
+
+def test_missing_image(tmp_path, rng):
+    nerf_one(tmp_path, rng, file_path="nope.png")
+    with pytest.raises(InputError, match=r"nope.png: image listed in .*transforms_train.json does not exist"):
+        load_dataset(tmp_path)
+
+
+def test_wrong_image_size(tmp_path, rng):
+    nerf_one(tmp_path, rng, w=W * 2)
+    with pytest.raises(InputError, match=r"a.png: image is 24x16 but transforms_train.json says 48x16"):
+        load_dataset(tmp_path)
+
+
+def test_wrong_video_size(tmp_path, rng):
+    cams, imgs = rig(), images(rng, channels=3)
+    write_video_layout(tmp_path, cams, imgs, w=W, h=H)
+    ds = load_dataset(tmp_path)
+    assert ds[0].image.shape == (H, W, 3)
+    write_video(tmp_path / "cam0.mkv", imgs[0, :, :8, :8], FPS)  # replaced with a smaller video
+    with pytest.raises(InputError, match=r"cam0.mkv: video is 8x8 but cameras.json says 24x16"):
+        load_dataset(tmp_path)
+
+
+def test_malformed_json(tmp_path):
+    (tmp_path / "transforms_train.json").write_text('{"frames": [ {"file_path": ')
+    with pytest.raises(InputError, match=r"transforms_train.json: malformed JSON"):
+        load_dataset(tmp_path)
+
+
+def test_zero_focal_length(tmp_path, rng):
+    nerf_one(tmp_path, rng, fl_x=0.0, fl_y=0.0)
+    with pytest.raises(InputError, match=r"transforms_train.json: frame 0: focal length must be positive"):
+        load_dataset(tmp_path)
+
+
+def test_nan_in_pose(tmp_path, rng):
+    path = nerf_one(tmp_path, rng)
+    path.write_text(path.read_text().replace("[1.0,", "[NaN,", 1).replace("[0.0,", "[NaN,", 1))
+    with pytest.raises(InputError, match=r"transforms_train.json: frame 0: transform_matrix must be a finite"):
+        load_dataset(tmp_path)
+
+
+def test_missing_time(tmp_path, rng):
+    path = nerf_one(tmp_path, rng)
+    meta = json.loads(path.read_text())
+    del meta["frames"][0]["time"]
+    path.write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="frame 0: no 'time'"):
+        load_dataset(tmp_path)
+
+
+def test_corrupt_image_and_video(tmp_path, rng):
+    nerf_one(tmp_path, rng)
+    (tmp_path / "a.png").write_bytes(b"\x89PNG garbage")
+    ds = load_dataset(tmp_path, )
+    with pytest.raises(InputError, match=r"a.png: cannot decode image"):
+        ds[0]
+    (tmp_path / "cameras.json").write_text(json.dumps({"cameras": [{"video": "v.mkv", "fl_x": 10,
+                                                                    "transform_matrix": np.eye(4).tolist()}]}))
+    (tmp_path / "v.mkv").write_bytes(b"garbage")
+    with pytest.raises(InputError, match=r"v.mkv: OpenCV cannot open this video"):
+        load_dataset(tmp_path, layout="video")
+
+
+def test_unknown_layout_and_missing_folder(tmp_path):
+    with pytest.raises(InputError, match="no known dataset layout"):
+        load_dataset(tmp_path)
+    with pytest.raises(InputError, match="dataset folder does not exist"):
+        load_dataset(tmp_path / "nope")
+    with pytest.raises(ValueError, match="unknown dataset layout 'colmap'"):
+        load_dataset(tmp_path, layout="colmap")
