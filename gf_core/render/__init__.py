@@ -1,0 +1,133 @@
+"""The differentiable Gaussian-particle renderer: one public entry, ``render``.
+
+Backends: ``reference`` (pure torch, any device, autograd: the oracle) and ``native`` (C++/OpenMP
+on CPU, hand-written backward). ``backend="auto"`` picks native for CPU tensors when it builds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import Camera
+from ..errors import InputError
+from . import native, reference
+from .constants import DEFAULT_MIN_ALPHA, TILE_SIZE
+
+BACKENDS = ("auto", "reference", "native")
+
+
+@dataclass
+class RenderOutput:
+    """color (H, W, C); alpha (H, W); depth (H, W) expected depth or None if not requested;
+    means2d (N, 2) pixel positions, kept in the graph with ``retain_grad`` so that after
+    ``backward()`` ``means2d.grad`` is the per-particle 2D mean gradient (densification);
+    radii (N,) int32 splat radii in pixels, 0 for particles not drawn."""
+
+    color: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor | None
+    means2d: torch.Tensor
+    radii: torch.Tensor
+    backend: str
+
+    @property
+    def visible(self) -> torch.Tensor:
+        return self.radii > 0
+
+
+def _check(name, t, shape_tail, n=None):
+    if not isinstance(t, torch.Tensor):
+        raise InputError("render", f"{name} must be a torch tensor, got {type(t).__name__}")
+    if t.dim() != 1 + len(shape_tail) or tuple(t.shape[1:]) != tuple(shape_tail) or (n is not None and t.shape[0] != n):
+        want = ", ".join(["N"] + [str(s) for s in shape_tail])
+        raise InputError("render", f"{name} must have shape ({want}) with N={n}, got {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise InputError("render", f"{name} contains NaN or infinite values")
+
+
+def pick_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown renderer backend {backend!r}; choose from {', '.join(BACKENDS)}")
+    if backend == "auto":
+        return "native" if device.type == "cpu" and native.available() else "reference"
+    if backend == "native":
+        if device.type != "cpu":
+            raise ValueError("the native backend runs on CPU tensors; use backend='reference' on "
+                             f"{device.type}")
+        if not native.available():
+            raise RuntimeError(f"native backend unavailable: {native.unavailable_reason()}")
+    return backend
+
+
+def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opacities: torch.Tensor,
+           sh: torch.Tensor, camera: Camera, background=None, *, sh_degree: int | None = None,
+           backend: str = "auto", min_alpha: float = DEFAULT_MIN_ALPHA, return_depth: bool = False,
+           tile_size: int = TILE_SIZE) -> RenderOutput:
+    """Splat Gaussian particles into ``camera`` (paper Eq. 3).
+
+    means (N, 3) world positions; scales (N, 3) > 0 (activated); quats (N, 4) w, x, y, z, any norm;
+    opacities (N,) in [0, 1] (activated); sh (N, K, C) SH coefficients, K = (degree+1)^2 >= 1,
+    C = 1 (grayscale) or 3. ``background`` (C,) defaults to black. ``min_alpha``: a splat whose
+    alpha at a pixel is below this is skipped there (default 1e-3, far below a 1%-opacity
+    particle's centre). Depth is composited only when ``return_depth``.
+    """
+    n = means.shape[0] if isinstance(means, torch.Tensor) and means.dim() == 2 else None
+    _check("means", means, (3,))
+    _check("scales", scales, (3,), n)
+    _check("quats", quats, (4,), n)
+    _check("opacities", opacities, (), n)
+    if not isinstance(sh, torch.Tensor) or sh.dim() != 3 or sh.shape[0] != n or sh.shape[2] not in (1, 3) \
+            or sh.shape[1] not in (1, 4, 9, 16):
+        raise InputError("render", f"sh must have shape (N={n}, (degree+1)^2, 1 or 3), got "
+                                   f"{tuple(sh.shape) if isinstance(sh, torch.Tensor) else type(sh).__name__}")
+    _check("sh", sh, tuple(sh.shape[1:]), n)
+    if (scales < 0).any():
+        raise InputError("render", "scales must be non-negative (pass exp(log_scales))")
+    if ((opacities < 0) | (opacities > 1)).any():
+        raise InputError("render", "opacities must lie in [0, 1] (pass sigmoid(logits))")
+    if not 0 < min_alpha < 1:
+        raise ValueError(f"min_alpha must be in (0, 1), got {min_alpha}")
+    max_degree = int(math.isqrt(sh.shape[1])) - 1
+    degree = max_degree if sh_degree is None else int(sh_degree)
+    if not 0 <= degree <= max_degree:
+        raise ValueError(f"sh_degree {degree} needs {(degree + 1) ** 2} coefficients, sh has {sh.shape[1]}")
+    dev, dt = means.device, means.dtype
+    channels = sh.shape[2]
+    bg = torch.zeros(channels, dtype=dt, device=dev) if background is None else \
+        torch.as_tensor(background, dtype=dt, device=dev).reshape(-1)
+    if bg.numel() != channels:
+        raise InputError("render", f"background has {bg.numel()} values for {channels} channels")
+    W, H = camera.width, camera.height
+    viewmat, intr = camera.to_torch(device=dev, dtype=torch.float64)
+    which = pick_backend(backend, dev)
+
+    if which == "native":
+        means2d, conics, depths, colors, radii = native.ProjectFn.apply(
+            means, scales, quats, opacities, sh, viewmat.cpu(), intr.cpu(), W, H, camera.near,
+            min_alpha, degree)
+    else:
+        means2d, conics, depths, colors, radii = reference.project(
+            means, scales, quats, opacities, sh, viewmat, intr, W, H, near=camera.near,
+            min_alpha=min_alpha, sh_degree=degree)
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    features = torch.cat([colors, depths[:, None]], 1) if return_depth else colors
+    bg_f = torch.cat([bg, bg.new_zeros(1)]) if return_depth else bg
+    if which == "native":
+        img, T = native.RasterizeFn.apply(means2d, conics, opacities, features, bg_f, radii, depths,
+                                          W, H, tile_size, min_alpha)
+    else:
+        img, T = reference.rasterize(means2d, conics, opacities, features, bg_f, radii, depths, W, H,
+                                     tile=tile_size, min_alpha=min_alpha)
+    alpha = 1.0 - T
+    depth = None
+    if return_depth:
+        depth = img[..., channels] / torch.clamp_min(alpha, 1e-6)
+        img = img[..., :channels]
+    return RenderOutput(color=img, alpha=alpha, depth=depth, means2d=means2d, radii=radii, backend=which)
+
+
+__all__ = ["render", "RenderOutput", "BACKENDS", "DEFAULT_MIN_ALPHA"]

@@ -1,0 +1,435 @@
+// CPU backend of the splatting renderer: OpenMP over Gaussians (projection) and over tiles
+// (rasterisation), hand-written forward and backward. Math in gaussian_math.h.
+#include <torch/extension.h>
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <vector>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+#include "gaussian_math.h"
+
+namespace {
+
+using gf::Cam;
+using gf::Proj;
+
+Cam make_cam(const torch::Tensor& viewmat, const torch::Tensor& intr, int64_t W, int64_t H, double near) {
+  TORCH_CHECK(viewmat.numel() == 16 && intr.numel() == 4, "viewmat must be 4x4 and intr [fx, fy, cx, cy]");
+  auto vm = viewmat.to(torch::kCPU, torch::kFloat64).contiguous();
+  auto in = intr.to(torch::kCPU, torch::kFloat64).contiguous();
+  const double* m = vm.data_ptr<double>();
+  const double* k = in.data_ptr<double>();
+  Cam c;
+  for (int r = 0; r < 3; ++r) {
+    for (int j = 0; j < 3; ++j) c.R[3 * r + j] = m[4 * r + j];
+    c.t[r] = m[4 * r + 3];
+  }
+  for (int j = 0; j < 3; ++j) c.campos[j] = -(c.R[j] * c.t[0] + c.R[3 + j] * c.t[1] + c.R[6 + j] * c.t[2]);
+  c.fx = k[0]; c.fy = k[1]; c.cx = k[2]; c.cy = k[3];
+  c.width = (int)W; c.height = (int)H; c.near = near;
+  return c;
+}
+
+int num_threads() {
+#ifdef _OPENMP
+  return omp_get_max_threads();
+#else
+  return 1;
+#endif
+}
+
+int thread_id() {
+#ifdef _OPENMP
+  return omp_get_thread_num();
+#else
+  return 0;
+#endif
+}
+
+// ================================ projection ======================================================
+template <typename S>
+void project_fwd_impl(const Cam& cam, int64_t N, int K, int Cc, int degree, double min_alpha,
+                      const S* means, const S* scales, const S* quats, const S* opac, const S* sh,
+                      S* means2d, S* conics, S* depths, S* colors, int32_t* radii) {
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < N; ++i) {
+    double p[3], s[3], q[4];
+    for (int j = 0; j < 3; ++j) { p[j] = means[3 * i + j]; s[j] = scales[3 * i + j]; }
+    for (int j = 0; j < 4; ++j) q[j] = quats[4 * i + j];
+    Proj P;
+    int r = 0;
+    if (gf::project_core(cam, p, s, q, P)) r = gf::splat_radius(P, (double)opac[i], min_alpha, cam.width, cam.height);
+    radii[i] = r;
+    if (r == 0) {
+      means2d[2 * i] = means2d[2 * i + 1] = 0;
+      conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = 0;
+      depths[i] = 0;
+      for (int c = 0; c < Cc; ++c) colors[Cc * i + c] = 0;
+      continue;
+    }
+    means2d[2 * i] = (S)P.u; means2d[2 * i + 1] = (S)P.v;
+    conics[3 * i] = (S)(P.c / P.det); conics[3 * i + 1] = (S)(-P.b / P.det); conics[3 * i + 2] = (S)(P.a / P.det);
+    depths[i] = (S)P.t[2];
+    double Y[16];
+    gf::sh_basis(degree, P.dir, Y);
+    int nb = gf::sh_count(degree);
+    for (int c = 0; c < Cc; ++c) {
+      double acc = 0.5;
+      for (int k = 0; k < nb; ++k) acc += Y[k] * (double)sh[((int64_t)i * K + k) * Cc + c];
+      colors[Cc * i + c] = (S)(acc > 0 ? acc : 0);
+    }
+  }
+}
+
+template <typename S>
+void project_bwd_impl(const Cam& cam, int64_t N, int K, int Cc, int degree,
+                      const S* means, const S* scales, const S* quats, const S* sh, const int32_t* radii,
+                      const S* g_means2d, const S* g_conics, const S* g_depths, const S* g_colors,
+                      S* g_means, S* g_scales, S* g_quats, S* g_sh) {
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < N; ++i) {
+    if (radii[i] <= 0) continue;  // outputs were constant zeros: no gradient (buffers are zeroed)
+    double p[3], s[3], q[4];
+    for (int j = 0; j < 3; ++j) { p[j] = means[3 * i + j]; s[j] = scales[3 * i + j]; }
+    for (int j = 0; j < 4; ++j) q[j] = quats[4 * i + j];
+    Proj P;
+    gf::project_core(cam, p, s, q, P);
+    // colour = max(SH . Y + 0.5, 0): dL/dsh_kc = Y_k g_c ; dL/dY_k = sum_c sh_kc g_c
+    int nb = gf::sh_count(degree);
+    double Y[16];
+    gf::sh_basis(degree, P.dir, Y);
+    double gY[16] = {0};
+    for (int c = 0; c < Cc; ++c) {
+      double acc = 0.5;
+      for (int k = 0; k < nb; ++k) acc += Y[k] * (double)sh[((int64_t)i * K + k) * Cc + c];
+      double g = acc >= 0 ? (double)g_colors[Cc * i + c] : 0.0;
+      for (int k = 0; k < nb; ++k) {
+        g_sh[((int64_t)i * K + k) * Cc + c] = (S)(Y[k] * g);
+        gY[k] += (double)sh[((int64_t)i * K + k) * Cc + c] * g;
+      }
+    }
+    double guv[2] = {(double)g_means2d[2 * i], (double)g_means2d[2 * i + 1]};
+    double gcon[3] = {(double)g_conics[3 * i], (double)g_conics[3 * i + 1], (double)g_conics[3 * i + 2]};
+    double gp[3], gs[3], gq[4];
+    gf::project_core_vjp(cam, s, P, guv, gcon, (double)g_depths[i], gY, degree, gp, gs, gq);
+    for (int j = 0; j < 3; ++j) { g_means[3 * i + j] = (S)gp[j]; g_scales[3 * i + j] = (S)gs[j]; }
+    for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = (S)gq[j];
+  }
+}
+
+// ================================ binning =========================================================
+// Tile/Gaussian pairs sorted by tile, then by depth (stable): offsets (tiles+1), ids (pairs).
+template <typename S>
+void bin_impl(int64_t N, const S* means2d, const S* depths, const int32_t* radii, int W, int H, int tile,
+              std::vector<int64_t>& offsets, std::vector<int32_t>& ids) {
+  int tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
+  int n_tiles = tiles_x * tiles_y;
+  std::vector<int32_t> vis;
+  vis.reserve(N);
+  for (int64_t i = 0; i < N; ++i)
+    if (radii[i] > 0) vis.push_back((int32_t)i);
+  std::stable_sort(vis.begin(), vis.end(), [&](int32_t a, int32_t b) { return depths[a] < depths[b]; });
+  std::vector<int32_t> rects(vis.size() * 4);
+  offsets.assign(n_tiles + 1, 0);
+  for (size_t k = 0; k < vis.size(); ++k) {
+    int32_t i = vis[k];
+    int* r = &rects[4 * k];
+    if (!gf::tile_rect((double)means2d[2 * i], (double)means2d[2 * i + 1], radii[i], tile, tiles_x, tiles_y, r)) {
+      r[0] = 1; r[2] = 0;  // empty
+      continue;
+    }
+    for (int ty = r[1]; ty <= r[3]; ++ty)
+      for (int tx = r[0]; tx <= r[2]; ++tx) offsets[ty * tiles_x + tx + 1]++;
+  }
+  for (int t = 0; t < n_tiles; ++t) offsets[t + 1] += offsets[t];
+  ids.resize(offsets[n_tiles]);
+  std::vector<int64_t> fill(offsets.begin(), offsets.end() - 1);
+  for (size_t k = 0; k < vis.size(); ++k) {  // depth order is kept within each tile
+    const int* r = &rects[4 * k];
+    for (int ty = r[1]; ty <= r[3]; ++ty)
+      for (int tx = r[0]; tx <= r[2]; ++tx) ids[fill[ty * tiles_x + tx]++] = vis[k];
+  }
+}
+
+// ================================ rasterisation ===================================================
+template <typename S>
+struct Splat {
+  S u, v, A, B, C, o;
+  S log_cut;  // log(min_alpha / o): power below this cannot reach min_alpha
+};
+
+template <typename S>
+void raster_fwd_impl(int W, int H, int tile, int F, double min_alpha, const S* means2d, const S* conics,
+                     const S* opac, const S* feat, const S* bg, const int64_t* offsets, const int32_t* ids,
+                     S* out, S* T_out, int32_t* n_contrib) {
+  int tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
+  const S amin = (S)min_alpha, amax = (S)gf::kAlphaMax, tmin = (S)gf::kTransmittanceMin;
+#pragma omp parallel
+  {
+    std::vector<Splat<S>> sp;
+    std::vector<S> acc(F);
+#pragma omp for schedule(dynamic, 1)
+    for (int t = 0; t < tiles_x * tiles_y; ++t) {
+      int64_t beg = offsets[t], end = offsets[t + 1];
+      int n = (int)(end - beg);
+      sp.resize(n);
+      for (int k = 0; k < n; ++k) {
+        int32_t g = ids[beg + k];
+        S o = opac[g];
+        sp[k] = {means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], o,
+                 (S)(std::log(min_alpha / (double)o) - 1e-3)};
+      }
+      int x0 = (t % tiles_x) * tile, y0 = (t / tiles_x) * tile;
+      for (int py = y0; py < std::min(y0 + tile, H); ++py) {
+        for (int px = x0; px < std::min(x0 + tile, W); ++px) {
+          S cxp = (S)px + (S)0.5, cyp = (S)py + (S)0.5;
+          S T = 1;
+          int last = 0;
+          std::fill(acc.begin(), acc.end(), (S)0);
+          for (int k = 0; k < n; ++k) {
+            const Splat<S>& s = sp[k];
+            S dx = s.u - cxp, dy = s.v - cyp;
+            S power = gf::splat_power(s.A, s.B, s.C, dx, dy);
+            if (power > 0 || power < s.log_cut) continue;
+            S alpha = std::min(amax, s.o * std::exp(power));
+            if (alpha < amin) continue;
+            S Tn = T * (1 - alpha);
+            if (Tn < tmin) break;
+            const S* f = feat + (int64_t)ids[beg + k] * F;
+            S w = alpha * T;
+            for (int c = 0; c < F; ++c) acc[c] += w * f[c];
+            T = Tn;
+            last = k + 1;
+          }
+          int64_t pix = (int64_t)py * W + px;
+          for (int c = 0; c < F; ++c) out[pix * F + c] = acc[c] + T * bg[c];
+          T_out[pix] = T;
+          n_contrib[pix] = last;
+        }
+      }
+    }
+  }
+}
+
+template <typename S>
+void raster_bwd_impl(int64_t N, int W, int H, int tile, int F, double min_alpha, const S* means2d,
+                     const S* conics, const S* opac, const S* feat, const S* bg, const int64_t* offsets,
+                     const int32_t* ids, const S* T_final, const int32_t* n_contrib, const S* g_out,
+                     const S* g_T, S* g_means2d, S* g_conics, S* g_opac, S* g_feat) {
+  int tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
+  const S amin = (S)min_alpha, amax = (S)gf::kAlphaMax;
+  int nt = num_threads();
+  // per-thread accumulators (Gaussians are shared between tiles), reduced at the end
+  const int G = 6 + F;  // u, v, A, B, C, o, features
+  std::vector<std::vector<S>> per_thread(nt);
+#pragma omp parallel
+  {
+    std::vector<S>& buf = per_thread[thread_id()];
+    buf.assign((size_t)N * G, (S)0);
+    std::vector<Splat<S>> sp;
+    std::vector<S> local;  // gradients of this tile's splats, indexed by position in the tile list
+    std::vector<S> Sacc(F);
+#pragma omp for schedule(dynamic, 1)
+    for (int t = 0; t < tiles_x * tiles_y; ++t) {
+      int64_t beg = offsets[t], end = offsets[t + 1];
+      int n = (int)(end - beg);
+      if (n == 0) continue;
+      sp.resize(n);
+      local.assign((size_t)n * G, (S)0);
+      for (int k = 0; k < n; ++k) {
+        int32_t g = ids[beg + k];
+        S o = opac[g];
+        sp[k] = {means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], o,
+                 (S)(std::log(min_alpha / (double)o) - 1e-3)};
+      }
+      int x0 = (t % tiles_x) * tile, y0 = (t / tiles_x) * tile;
+      for (int py = y0; py < std::min(y0 + tile, H); ++py) {
+        for (int px = x0; px < std::min(x0 + tile, W); ++px) {
+          int64_t pix = (int64_t)py * W + px;
+          int last = n_contrib[pix];
+          if (last == 0) continue;
+          S cxp = (S)px + (S)0.5, cyp = (S)py + (S)0.5;
+          S Tf = T_final[pix];
+          S T = Tf;
+          const S* go = g_out + pix * F;
+          S gT = g_T[pix];
+          for (int c = 0; c < F; ++c) Sacc[c] = Tf * bg[c];  // what lies behind splat k
+          for (int k = last - 1; k >= 0; --k) {
+            const Splat<S>& s = sp[k];
+            S dx = s.u - cxp, dy = s.v - cyp;
+            S power = gf::splat_power(s.A, s.B, s.C, dx, dy);
+            if (power > 0 || power < s.log_cut) continue;
+            S Gk = std::exp(power);
+            S raw = s.o * Gk;
+            S alpha = std::min(amax, raw);
+            if (alpha < amin) continue;
+            S one_m = 1 - alpha;
+            T = T / one_m;  // transmittance in front of splat k
+            const S* f = feat + (int64_t)ids[beg + k] * F;
+            S* lg = &local[(size_t)k * G];
+            S w = alpha * T;
+            S g_alpha = -gT * Tf / one_m;
+            for (int c = 0; c < F; ++c) {
+              lg[6 + c] += w * go[c];
+              g_alpha += go[c] * (T * f[c] - Sacc[c] / one_m);
+              Sacc[c] += w * f[c];
+            }
+            if (raw > amax) continue;  // clamped alpha: no gradient to opacity or shape
+            lg[5] += g_alpha * Gk;
+            S g_power = g_alpha * s.o * Gk;
+            lg[0] += g_power * -(s.A * dx + s.B * dy);
+            lg[1] += g_power * -(s.B * dx + s.C * dy);
+            lg[2] += g_power * (S)-0.5 * dx * dx;
+            lg[3] += g_power * -dx * dy;
+            lg[4] += g_power * (S)-0.5 * dy * dy;
+          }
+        }
+      }
+      for (int k = 0; k < n; ++k) {
+        S* dst = &buf[(size_t)ids[beg + k] * G];
+        const S* src = &local[(size_t)k * G];
+        for (int j = 0; j < G; ++j) dst[j] += src[j];
+      }
+    }
+  }
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < N; ++i) {
+    S tot[64];
+    S* acc = G <= 64 ? tot : nullptr;
+    std::vector<S> big;
+    if (!acc) { big.assign(G, 0); acc = big.data(); }
+    for (int j = 0; j < G; ++j) acc[j] = 0;
+    for (int th = 0; th < nt; ++th) {
+      if (per_thread[th].empty()) continue;
+      const S* src = &per_thread[th][(size_t)i * G];
+      for (int j = 0; j < G; ++j) acc[j] += src[j];
+    }
+    g_means2d[2 * i] = acc[0]; g_means2d[2 * i + 1] = acc[1];
+    g_conics[3 * i] = acc[2]; g_conics[3 * i + 1] = acc[3]; g_conics[3 * i + 2] = acc[4];
+    g_opac[i] = acc[5];
+    for (int c = 0; c < F; ++c) g_feat[i * F + c] = acc[6 + c];
+  }
+}
+
+void check_cpu(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
+}
+
+// ================================ bindings ========================================================
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                           torch::Tensor opac, torch::Tensor sh, torch::Tensor viewmat,
+                                           torch::Tensor intr, int64_t W, int64_t H, double near,
+                                           double min_alpha, int64_t degree) {
+  check_cpu(means, "means");
+  means = means.contiguous(); scales = scales.contiguous(); quats = quats.contiguous();
+  opac = opac.contiguous(); sh = sh.contiguous();
+  int64_t N = means.size(0);
+  int K = (int)sh.size(1), Cc = (int)sh.size(2);
+  TORCH_CHECK(gf::sh_count((int)degree) <= K, "sh has too few coefficients for degree ", degree);
+  Cam cam = make_cam(viewmat, intr, W, H, near);
+  auto opts = means.options();
+  auto means2d = torch::empty({N, 2}, opts), conics = torch::empty({N, 3}, opts);
+  auto depths = torch::empty({N}, opts), colors = torch::empty({N, Cc}, opts);
+  auto radii = torch::empty({N}, opts.dtype(torch::kInt32));
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
+    project_fwd_impl<scalar_t>(cam, N, K, Cc, (int)degree, min_alpha, means.data_ptr<scalar_t>(),
+                               scales.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+                               sh.data_ptr<scalar_t>(), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                               depths.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(), radii.data_ptr<int32_t>());
+  });
+  return {means2d, conics, depths, colors, radii};
+}
+
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                            torch::Tensor sh, torch::Tensor viewmat, torch::Tensor intr,
+                                            int64_t W, int64_t H, double near, int64_t degree,
+                                            torch::Tensor radii, torch::Tensor g_means2d, torch::Tensor g_conics,
+                                            torch::Tensor g_depths, torch::Tensor g_colors) {
+  means = means.contiguous(); scales = scales.contiguous(); quats = quats.contiguous(); sh = sh.contiguous();
+  g_means2d = g_means2d.contiguous(); g_conics = g_conics.contiguous();
+  g_depths = g_depths.contiguous(); g_colors = g_colors.contiguous();
+  int64_t N = means.size(0);
+  int K = (int)sh.size(1), Cc = (int)sh.size(2);
+  Cam cam = make_cam(viewmat, intr, W, H, near);
+  auto g_means = torch::zeros_like(means), g_scales = torch::zeros_like(scales);
+  auto g_quats = torch::zeros_like(quats), g_sh = torch::zeros_like(sh);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+    project_bwd_impl<scalar_t>(cam, N, K, Cc, (int)degree, means.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+                               quats.data_ptr<scalar_t>(), sh.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                               g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
+                               g_depths.data_ptr<scalar_t>(), g_colors.data_ptr<scalar_t>(),
+                               g_means.data_ptr<scalar_t>(), g_scales.data_ptr<scalar_t>(),
+                               g_quats.data_ptr<scalar_t>(), g_sh.data_ptr<scalar_t>());
+  });
+  return {g_means, g_scales, g_quats, g_sh};
+}
+
+std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                             torch::Tensor feat, torch::Tensor bg, torch::Tensor radii,
+                                             torch::Tensor depths, int64_t W, int64_t H, int64_t tile,
+                                             double min_alpha) {
+  check_cpu(means2d, "means2d");
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  feat = feat.contiguous(); bg = bg.contiguous(); radii = radii.contiguous(); depths = depths.contiguous();
+  int64_t N = means2d.size(0);
+  int F = (int)feat.size(1);
+  TORCH_CHECK(bg.numel() == F, "background must have one value per feature channel");
+  auto opts = means2d.options();
+  auto out = torch::empty({H, W, F}, opts), T = torch::empty({H, W}, opts);
+  auto nc = torch::empty({H, W}, opts.dtype(torch::kInt32));
+  std::vector<int64_t> offsets;
+  std::vector<int32_t> ids;
+  torch::Tensor off_t, ids_t;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
+    bin_impl<scalar_t>(N, means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                       (int)W, (int)H, (int)tile, offsets, ids);
+    raster_fwd_impl<scalar_t>((int)W, (int)H, (int)tile, F, min_alpha, means2d.data_ptr<scalar_t>(),
+                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), feat.data_ptr<scalar_t>(),
+                              bg.data_ptr<scalar_t>(), offsets.data(), ids.data(), out.data_ptr<scalar_t>(),
+                              T.data_ptr<scalar_t>(), nc.data_ptr<int32_t>());
+  });
+  off_t = torch::from_blob(offsets.data(), {(int64_t)offsets.size()}, torch::kInt64).clone();
+  ids_t = torch::from_blob(ids.data(), {(int64_t)ids.size()}, torch::kInt32).clone();
+  return {out, T, nc, off_t, ids_t};
+}
+
+std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                              torch::Tensor feat, torch::Tensor bg, torch::Tensor offsets,
+                                              torch::Tensor ids, torch::Tensor T_final, torch::Tensor n_contrib,
+                                              torch::Tensor g_out, torch::Tensor g_T, int64_t W, int64_t H,
+                                              int64_t tile, double min_alpha) {
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  feat = feat.contiguous(); bg = bg.contiguous(); g_out = g_out.contiguous(); g_T = g_T.contiguous();
+  int64_t N = means2d.size(0);
+  int F = (int)feat.size(1);
+  auto g_m = torch::zeros_like(means2d), g_c = torch::zeros_like(conics);
+  auto g_o = torch::zeros_like(opac), g_f = torch::zeros_like(feat);
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {
+    raster_bwd_impl<scalar_t>(N, (int)W, (int)H, (int)tile, F, min_alpha, means2d.data_ptr<scalar_t>(),
+                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), feat.data_ptr<scalar_t>(),
+                              bg.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
+                              T_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(),
+                              g_out.data_ptr<scalar_t>(), g_T.data_ptr<scalar_t>(), g_m.data_ptr<scalar_t>(),
+                              g_c.data_ptr<scalar_t>(), g_o.data_ptr<scalar_t>(), g_f.data_ptr<scalar_t>());
+  });
+  return {g_m, g_c, g_o, g_f};
+}
+
+std::vector<double> constants() {
+  return {gf::kLowPass, gf::kAlphaMax, gf::kTransmittanceMin, gf::kFrustumSlack, gf::kShC0, gf::kShC1};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("project_forward", &project_forward, "per-Gaussian projection (forward)");
+  m.def("project_backward", &project_backward, "per-Gaussian projection (backward)");
+  m.def("rasterize_forward", &rasterize_forward, "tile binning + front-to-back compositing (forward)");
+  m.def("rasterize_backward", &rasterize_backward, "compositing (backward)");
+  m.def("constants", &constants, "the renderer constants compiled into the extension");
+}
