@@ -189,7 +189,7 @@ class Camera:
         import torch
 
         dtype = dtype or torch.float32
-        viewmat = torch.as_tensor(self.world_to_camera, dtype=dtype, device=device)
+        viewmat = torch.tensor(self.world_to_camera, dtype=dtype, device=device)
         intr = torch.tensor([self.fx, self.fy, self.cx, self.cy], dtype=dtype, device=device)
         return viewmat, intr
 

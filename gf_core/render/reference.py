@@ -215,4 +215,10 @@ def rasterize(means2d, conics, opacities, features, background, radii, depths, w
     img = img.permute(0, 2, 1, 3, 4).reshape(tiles_y * tile, tiles_x * tile, F)[:height, :width]
     T = torch.cat(T_tiles, 0).reshape(tiles_y, tiles_x, tile, tile)
     T = T.permute(0, 2, 1, 3).reshape(tiles_y * tile, tiles_x * tile)[:height, :width]
+    if not img.requires_grad and torch.is_grad_enabled():
+        # nothing was drawn: keep the outputs in the graph (with zero gradients), like native
+        inputs = [t for t in (means2d, conics, opacities, features) if t.requires_grad]
+        if inputs:
+            zero = sum(t.sum() for t in inputs) * 0.0
+            img, T = img + zero, T + zero
     return img, T
