@@ -7,9 +7,9 @@ import sys
 
 from gf_core.errors import GFError
 
-from . import cmd_inspect
+from . import cmd_bench, cmd_inspect
 
-COMMANDS = [cmd_inspect]
+COMMANDS = [cmd_inspect, cmd_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,1 @@
+"""Benchmarks behind ``gf-cli bench``: each returns JSON-able records and prints a table."""
