@@ -54,6 +54,9 @@ class DFSPHParams:
             val = getattr(self, k)
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise InputError("dfsph", f"{k} must be a positive number, got {val!r}")
+        if self.cfl > 1.0:
+            raise InputError("dfsph", f"cfl {self.cfl} > 1: particles would cross more than a particle "
+                                      "diameter per step; use cfl <= 1 (default 0.4) and raise dt_max instead")
         if self.dt_min > self.dt_max:
             raise InputError("dfsph", f"dt_min {self.dt_min} > dt_max {self.dt_max}")
         if not 0 <= self.xsph <= 1:

@@ -1,6 +1,7 @@
 """Position Based Fluids (Macklin & Mueller 2013), in normalised densities rho~ = V sum_j W_ij.
 
 One substep, read top to bottom in ``step``:
+  0. dt = min(dt, cfl 2r / max|v|), dividing the time to the next frame evenly
   1. v += dt g ;  x* = x + dt v                         (predict)
   2. neighbours of x* (fluid and wall particles)
   3. ``iterations`` times (their Algorithm 1):
@@ -38,7 +39,8 @@ class PBFParams:
     particle_radius: float
     rest_density: float = 1000.0
     gravity: tuple = (0.0, 0.0, -9.81)
-    dt: float = 1.0 / 240.0        # substep
+    dt: float = 1.0 / 240.0        # substep (upper bound)
+    cfl: float = 1.0               # ... also limited to cfl * 2r / max|v|
     iterations: int = 4
     relaxation: float = 0.01       # eps, relative to sum |grad C|^2 of a lattice particle
     scorr_k: float = 0.1
@@ -51,7 +53,7 @@ class PBFParams:
     max_speed: float | None = None
 
     def validate(self):
-        for k in ("particle_radius", "rest_density", "dt", "relaxation"):
+        for k in ("particle_radius", "rest_density", "dt", "relaxation", "cfl"):
             val = getattr(self, k)
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise InputError("pbf", f"{k} must be a positive number, got {val!r}")
@@ -141,7 +143,8 @@ class PBF:
 
     def step(self, x: torch.Tensor, v: torch.Tensor, dt_max: float) -> dict:
         p = self.p
-        dt = even_step(p.dt, dt_max)
+        vnow = float(v.norm(dim=-1).max()) if v.shape[0] else 0.0
+        dt = even_step(min(p.dt, p.cfl * self.spacing / max(vnow, 1e-9)), dt_max)
         x0 = x.clone()
         v.add_(dt * self.g)
         limited = limit_speed(v, self.vmax)
