@@ -1,0 +1,185 @@
+"""Render a multiview training dataset from a simulation, headless.
+
+    blender -b -P render_data/render_dataset.py -- --sim sim.h5 --out DATASET [options]
+    python render_data/render_dataset.py --sim sim.h5 --out DATASET [options]   (bpy module)
+
+Writes DATASET/{train,test}/v{view}_f{frame}.png (RGBA), transforms_{train,test}.json (NeRF
+layout: camera-to-world in Blender's convention, camera_angle_x, per-frame time in seconds,
+view_id), gt_sim.h5 (a copy of the simulation) and manifest.json (options, Blender version).
+Deterministic under --seed; resumable: frames whose images all exist are skipped, and images
+are written under a temporary name and renamed, so a killed run never leaves a partial PNG.
+Needs bpy + numpy, and h5py for a .h5 input (a .npz input needs nothing else).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import struct
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
+H5PY_HELP = ("h5py is not importable in this Blender's Python, so {path} cannot be read. Either run "
+             "through `gf-cli render-dataset` (it hands Blender the particles as .npz), install the "
+             "GaussFluids Blender extension (it bundles h5py), or install h5py into Blender's Python: "
+             "`<blender>/<version>/python/bin/python3.11 -m pip install h5py`.")
+
+
+def parse_args(argv):
+    p = argparse.ArgumentParser(prog="render_dataset.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("--sim", required=True, help="sim.h5 (needs h5py) or a .npz written by gf-cli")
+    p.add_argument("--out", required=True, help="output dataset folder")
+    p.add_argument("--views", type=int, default=5, help="training cameras on a frontal arc (default 5)")
+    p.add_argument("--test-views", type=int, default=0, help="held-out cameras between them")
+    p.add_argument("--resolution", type=int, default=400)
+    p.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel")
+    p.add_argument("--denoise", action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--frames", default=":", help="START:END:STEP over the simulation's frames (python slice)")
+    p.add_argument("--material", default="auto", choices=["auto", "water", "honey", "smoke"])
+    p.add_argument("--fov", type=float, default=40.0, help="horizontal field of view, degrees")
+    p.add_argument("--show-container", action="store_true",
+                   help="let cameras see the tank and floor (default: only reflections/refractions)")
+    p.add_argument("--threads", type=int, default=0, help="render threads (0: all)")
+    a = p.parse_args(argv)
+    if a.views < 1 or a.test_views < 0 or a.resolution < 8 or a.samples < 1:
+        p.error("need views >= 1, test-views >= 0, resolution >= 8, samples >= 1")
+    return a
+
+
+def _attr(f, name):
+    v = f.attrs[name]
+    return v.decode() if isinstance(v, bytes) else v
+
+
+def load_particles(path: str) -> dict:
+    """positions (F, N, 3), times (F,), fps, particle_radius, domain, scene, rest_density."""
+    p = Path(path)
+    if not p.exists():
+        raise SystemExit(f"{p}: file does not exist")
+    if p.suffix == ".npz":
+        with np.load(p, allow_pickle=False) as d:
+            out = {k: d[k] for k in d.files}
+        out = {k: (v.item() if v.shape == () else v) for k, v in out.items()}
+    else:
+        try:
+            import h5py
+        except ImportError:
+            raise SystemExit(H5PY_HELP.format(path=p)) from None
+        try:
+            f = h5py.File(p, "r")
+        except OSError as e:
+            raise SystemExit(f"{p}: not a readable HDF5 file ({e})") from None
+        with f:
+            if _attr(f, "format") != SIM_FORMAT or int(f.attrs.get("version", -1)) != SIM_VERSION:
+                raise SystemExit(f"{p}: not a {SIM_FORMAT} v{SIM_VERSION} file")
+            out = {"positions": f["positions"][()], "times": f["times"][()], "fps": float(f.attrs["fps"]),
+                   "particle_radius": float(f.attrs["particle_radius"]),
+                   "domain_min": np.asarray(f.attrs["domain_min"]), "domain_max": np.asarray(f.attrs["domain_max"]),
+                   "scene": str(_attr(f, "scene")), "rest_density": float(f.attrs["rest_density"])}
+    pos = np.asarray(out["positions"], np.float32)
+    if pos.ndim != 3 or pos.shape[2] != 3 or pos.shape[1] == 0:
+        raise SystemExit(f"{p}: positions must be (frames, particles >= 1, 3), got {pos.shape}")
+    if not np.all(np.isfinite(pos)):
+        raise SystemExit(f"{p}: positions contain NaN or infinite values")
+    out["positions"] = pos
+    return out
+
+
+def png_ok(path: Path, size: int) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return False
+    return (len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n"
+            and struct.unpack(">II", head[16:24]) == (size, size))
+
+
+def write_json(path: Path, data) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def main(argv=None) -> int:
+    if argv is None:
+        argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    a = parse_args(argv)
+    sim = load_particles(a.sim)
+    import bpy
+
+    import scene_builder as sb
+
+    material = a.material
+    if material == "auto":
+        material = "honey" if ("honey" in str(sim.get("scene", "")) or sim.get("rest_density", 1000) > 1200) else "water"
+    frames = list(range(sim["positions"].shape[0]))[slice(*[int(x) if x else None for x in a.frames.split(":")])]
+    if not frames:
+        raise SystemExit(f"--frames {a.frames} selects no frame of {sim['positions'].shape[0]}")
+    out = Path(a.out)
+    fluid, cams, tcams = sb.build_scene(
+        n_particles=sim["positions"].shape[1], radius=float(sim["particle_radius"]), material=material,
+        domain_min=sim["domain_min"], domain_max=sim["domain_max"], views=a.views, test_views=a.test_views,
+        resolution=a.resolution, samples=a.samples, seed=a.seed, denoise=a.denoise, fov_deg=a.fov,
+        show_container=a.show_container, threads=a.threads)
+    splits = [("train", cams)] + ([("test", tcams)] if tcams else [])
+    for split, _ in splits:
+        (out / split).mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    for k, fi in enumerate(frames):
+        jobs = [(cam, out / split / f"v{v:02d}_f{fi:05d}.png")
+                for split, cs in splits for v, cam in enumerate(cs)]
+        todo = [(c, p) for c, p in jobs if not png_ok(p, a.resolution)]
+        if not todo:
+            print(f"frame {k + 1}/{len(frames)} (sim frame {fi}): already rendered, skipped", flush=True)
+            continue
+        t0 = time.perf_counter()
+        sb.set_particles(fluid, sim["positions"][fi])
+        for cam, path in todo:
+            tmp = path.with_name(path.stem + ".partial.png")
+            sb.render_to(str(tmp), cam)
+            os.replace(tmp, path)
+        print(f"frame {k + 1}/{len(frames)} (sim frame {fi}, t = {float(sim['times'][fi]):.3f} s): "
+              f"{len(todo)} images in {time.perf_counter() - t0:.1f} s", flush=True)
+    gt_name = None
+    if Path(a.sim).suffix != ".npz":
+        gt_name = "gt_sim.h5"
+        if not (out / gt_name).exists() or (out / gt_name).stat().st_size != Path(a.sim).stat().st_size:
+            shutil.copyfile(a.sim, out / (gt_name + ".partial"))
+            os.replace(out / (gt_name + ".partial"), out / gt_name)
+    elif sim.get("gt_file"):
+        gt_name = str(sim["gt_file"])
+    cam0 = cams[0].data
+    for split, cs in splits:
+        entries = []
+        for fi in frames:
+            for v, cam in enumerate(cs):
+                entries.append({"file_path": f"{split}/v{v:02d}_f{fi:05d}.png", "view_id": v,
+                                "camera_name": cam.name, "time": float(sim["times"][fi]), "frame": int(fi),
+                                "transform_matrix": [list(map(float, row)) for row in cam.matrix_world]})
+        meta = {"camera_angle_x": float(cam0.angle_x), "w": a.resolution, "h": a.resolution,
+                "fps": float(sim["fps"]), "background": [0.0, 0.0, 0.0], "frames": entries}
+        if gt_name:
+            meta["gt_particles"] = gt_name
+        write_json(out / f"transforms_{split}.json", meta)
+    manifest = {"generator": "gaussfluids render_data/render_dataset.py", "blender": bpy.app.version_string,
+                "options": vars(a), "material": material, "frames": frames,
+                "particles": int(sim["positions"].shape[1]), "scene": str(sim.get("scene", "")),
+                "render_seconds": time.perf_counter() - t_start}
+    write_json(out / "manifest.json", manifest)
+    print(f"dataset written to {out} ({len(frames)} frames x {len(cams)} views"
+          f"{f' + {len(tcams)} test views' if tcams else ''})", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
