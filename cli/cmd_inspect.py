@@ -21,6 +21,10 @@ def register(sub):
 
 
 def summarise(path: Path, args) -> dict:
+    from gf_core.errors import InputError
+
+    if not path.exists():
+        raise InputError(path, "does not exist")
     if path.is_dir():
         from gf_core.data import load_dataset
 
