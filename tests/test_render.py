@@ -39,7 +39,8 @@ def run(params, camera, backend, *, grad=True, seed=3, **kw):
                  backend=backend, return_depth=True, **kw)
     if grad:
         g = torch.Generator().manual_seed(seed)
-        w = torch.randn(out.color.shape, generator=g, dtype=out.color.dtype)
+        # the loss weights are drawn in float32 so that float32 and float64 runs share them
+        w = torch.randn(out.color.shape, generator=g, dtype=torch.float32).to(out.color.dtype)
         loss = (out.color * w).sum() + (out.alpha ** 2).sum() + 0.1 * out.depth.sum()
         loss.backward()
     return out, ps
@@ -65,25 +66,41 @@ def rel_err(a, b):
     return float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
 
 
+def rel_norm(a, b):
+    a, b = a.detach().double(), b.detach().double()
+    return float((a - b).norm() / b.norm().clamp_min(1e-30))
+
+
 @needs_native
 @pytest.mark.parametrize("n, W, H, degree, channels", [
     (60, 33, 17, 0, 1), (400, 64, 48, 1, 3), (3000, 97, 80, 2, 3), (1500, 128, 128, 3, 1)])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_native_matches_reference(n, W, H, degree, channels, dtype):
+    """float64: the backends agree to 1e-10 everywhere. float32: outputs agree to 1e-4 of their
+    scale; gradients (sums over many pixels, with cancellation) agree to 1e-4 in norm, and each is
+    within 1e-4 (norm) of the float64 result for the same inputs."""
     camera = cam(W, H, fx=0.8 * W)
     params = scene(n, dtype=dtype, degree=degree, channels=channels, seed=n,
                    log_scale=math.log(0.4 / n ** (1 / 3)))
     ref, ps_ref = run(params, camera, "reference")
     nat, ps_nat = run(params, camera, "native")
-    tol = 1e-4 if dtype == torch.float32 else 1e-10
     assert torch.equal(ref.radii, nat.radii)
-    for a, b, name in [(nat.color, ref.color, "color"), (nat.alpha, ref.alpha, "alpha"),
-                       (nat.means2d.grad, ref.means2d.grad, "means2d grad")] + \
-            [(pn.grad, pr.grad, f"grad {i}") for i, (pn, pr) in enumerate(zip(ps_nat, ps_ref))]:
-        assert rel_err(a, b) < tol, (name, rel_err(a, b))
-    # depth is a ratio (accumulated depth / alpha): compare where the pixel is not empty
-    m = ref.alpha > 1e-2
-    assert rel_err(nat.depth[m], ref.depth[m]) < 10 * tol
+    grads = [(nat.means2d.grad, ref.means2d.grad, "means2d")] + \
+        [(pn.grad, pr.grad, f"param {i}") for i, (pn, pr) in enumerate(zip(ps_nat, ps_ref))]
+    m = ref.alpha > 1e-2  # depth is a ratio (accumulated depth / alpha): compare where not empty
+    if dtype == torch.float64:
+        for a, b, name in [(nat.color, ref.color, "color"), (nat.alpha, ref.alpha, "alpha"),
+                           (nat.depth[m], ref.depth[m], "depth")] + grads:
+            assert rel_err(a, b) < 1e-10, (name, rel_err(a, b))
+        return
+    for a, b, name in [(nat.color, ref.color, "color"), (nat.alpha, ref.alpha, "alpha")]:
+        assert rel_err(a, b) < 1e-4, (name, rel_err(a, b))
+    assert rel_err(nat.depth[m], ref.depth[m]) < 1e-3
+    truth = run([p.double() for p in params], camera, "reference")[1]
+    for (a, b, name), pt in zip(grads[1:], truth):
+        assert rel_norm(a, b) < 1e-4, (name, rel_norm(a, b))
+        assert rel_norm(a, pt.grad) < 1e-4 and rel_norm(b, pt.grad) < 1e-4, name
+    assert rel_norm(*grads[0][:2]) < 1e-4
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -88,3 +88,52 @@ def test_bad_inputs(sim_file, tmp_path):
     assert main(["render-dataset", str(bad), "--out", str(tmp_path / "x")]) == 2
     assert main(["render-dataset", str(sim_file), "--out", str(tmp_path / "y"), "--blender",
                  str(tmp_path / "no-blender")]) == 2
+
+
+@pytest.mark.parametrize("material", ["honey", "smoke"])
+def test_other_materials_render(sim_file, tmp_path, material):
+    out = tmp_path / material
+    render(sim_file, out, "--material", material, "--views", "2", "--frames", "2:3")
+    ds = load_dataset(out)
+    s = ds[0]
+    assert float(s.alpha.mean()) > 0.01
+    if material == "honey":  # amber: more red than blue where the fluid is
+        m = s.alpha > 0.5
+        assert float(s.image[..., 0][m].mean()) > float(s.image[..., 2][m].mean())
+
+
+def test_blender_binary_path_uses_npz(sim_file, tmp_path):
+    """With a `blender` executable, gf-cli hands it the particles as .npz (Blender's own Python
+    may lack h5py) and Blender's command line (-b -P script -- args). A stand-in executable that
+    runs the script with this Python's bpy checks that path end to end."""
+    import sys
+
+    fake = tmp_path / "blender"
+    fake.write_text(
+        f"#!{sys.executable}\n"
+        "import runpy, sys\n"
+        "argv = sys.argv[1:]\n"
+        "assert argv[:2] == ['-b', '--factory-startup'] and '-P' in argv and '--' in argv, argv\n"
+        "sys.modules['h5py'] = None  # as in a stock Blender without h5py\n"
+        "script = argv[argv.index('-P') + 1]\n"
+        "sys.argv = [script] + argv[argv.index('--') + 1:]\n"
+        "runpy.run_path(script, run_name='__main__')\n")
+    fake.chmod(0o755)
+    out = tmp_path / "ds"
+    render(sim_file, out, "--blender", str(fake), "--views", "2", "--frames", "0:1")
+    ds = load_dataset(out)
+    assert len(ds) == 2 and ds.gt_file is not None and ds.ground_truth().num_particles > 0
+
+
+def test_clear_message_without_h5py(sim_file, tmp_path):
+    import subprocess
+    import sys
+
+    from gf_cli.cmd_render_dataset import script_path
+
+    code = ("import sys, runpy; sys.modules['h5py'] = None; "
+            f"sys.argv = ['x', '--sim', {str(sim_file)!r}, '--out', {str(tmp_path / 'o')!r}]; "
+            f"runpy.run_path({str(script_path())!r}, run_name='__main__')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode != 0
+    assert "h5py is not importable" in r.stderr and "gf-cli render-dataset" in r.stderr

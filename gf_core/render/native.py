@@ -106,17 +106,17 @@ class RasterizeFn(torch.autograd.Function):
         out, T, nc, offsets, ids = load().rasterize_forward(means2d, conics, opacities, features,
                                                             background, radii, depths, width, height,
                                                             tile, min_alpha)
-        ctx.save_for_backward(means2d, conics, opacities, features, background, offsets, ids, T, nc)
+        ctx.save_for_backward(means2d, conics, opacities, radii, features, background, offsets, ids, T, nc)
         ctx.cfg = (width, height, tile, min_alpha)
         return out, T
 
     @staticmethod
     def backward(ctx, g_out, g_T):
-        means2d, conics, opacities, features, background, offsets, ids, T, nc = ctx.saved_tensors
+        means2d, conics, opacities, radii, features, background, offsets, ids, T, nc = ctx.saved_tensors
         width, height, tile, min_alpha = ctx.cfg
         g_out = _zeros_if_none(g_out, means2d.new_zeros(height, width, features.shape[1]))
         g_T = _zeros_if_none(g_T, T)
-        gm, gc, go, gf = load().rasterize_backward(means2d, conics, opacities, features, background,
+        gm, gc, go, gf = load().rasterize_backward(means2d, conics, opacities, radii, features, background,
                                                    offsets, ids, T, nc, g_out, g_T, width, height,
                                                    tile, min_alpha)
         return gm, gc, go, gf, None, None, None, None, None, None, None

@@ -160,126 +160,169 @@ void bin_impl(int64_t N, const S* means2d, const S* depths, const int32_t* radii
 template <typename S>
 struct Splat {
   S u, v, A, B, C, o;
-  S log_cut;  // log(min_alpha / o): power below this cannot reach min_alpha
+  S log_cut;           // log(min_alpha / o) - 1e-3: a power below this cannot reach min_alpha
+  int x0, x1, y0, y1;  // pixel box of the splat radius: outside it alpha < min_alpha anyway
 };
 
+constexpr int kMaxTile = 64;
+
+// A tile's splats in depth order, with their pixel boxes (pixel j has its centre at j + 0.5).
+template <typename S>
+void load_tile(int64_t beg, int n, const int32_t* ids, const S* means2d, const S* conics, const S* opac,
+               const int32_t* radii, double min_alpha, std::vector<Splat<S>>& sp) {
+  sp.resize(n);
+  for (int k = 0; k < n; ++k) {
+    int32_t g = ids[beg + k];
+    double u = (double)means2d[2 * g], v = (double)means2d[2 * g + 1], r = radii[g];
+    sp[k] = {means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1], conics[3 * g + 2],
+             opac[g], (S)(std::log(min_alpha / (double)opac[g]) - 1e-3),
+             (int)std::ceil(u - r - 0.5), (int)std::floor(u + r - 0.5),
+             (int)std::ceil(v - r - 0.5), (int)std::floor(v + r - 0.5)};
+  }
+}
+
+// Powers of splat s at pixels [a, b] of row py (a vectorisable loop: no branches, no exp).
+template <typename S>
+inline void row_powers(const Splat<S>& s, int a, int b, int py, S* pw) {
+  const S dy = s.v - ((S)py + (S)0.5);
+  const S cdy = s.C * dy * dy, bdy = s.B * dy;
+  for (int px = a; px <= b; ++px) {
+    const S dx = s.u - ((S)px + (S)0.5);
+    pw[px - a] = (S)-0.5 * (s.A * dx * dx + cdy) - bdy * dx;
+  }
+}
+
+// Forward: the tile is processed a pixel row at a time, splats in depth order (outer loop) and the
+// row's pixels inside; each pixel still sees the same splats in the same order as in Eq. (3).
 template <typename S>
 void raster_fwd_impl(int W, int H, int tile, int F, double min_alpha, const S* means2d, const S* conics,
-                     const S* opac, const S* feat, const S* bg, const int64_t* offsets, const int32_t* ids,
-                     S* out, S* T_out, int32_t* n_contrib) {
+                     const S* opac, const int32_t* radii, const S* feat, const S* bg, const int64_t* offsets,
+                     const int32_t* ids, S* out, S* T_out, int32_t* n_contrib) {
   int tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
   const S amin = (S)min_alpha, amax = (S)gf::kAlphaMax, tmin = (S)gf::kTransmittanceMin;
 #pragma omp parallel
   {
     std::vector<Splat<S>> sp;
-    std::vector<S> acc(F);
+    std::vector<S> acc((size_t)kMaxTile * F);
+    S T[kMaxTile], pw[kMaxTile];
+    int last[kMaxTile];
+    bool done[kMaxTile];
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < tiles_x * tiles_y; ++t) {
-      int64_t beg = offsets[t], end = offsets[t + 1];
-      int n = (int)(end - beg);
-      sp.resize(n);
-      for (int k = 0; k < n; ++k) {
-        int32_t g = ids[beg + k];
-        S o = opac[g];
-        sp[k] = {means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], o,
-                 (S)(std::log(min_alpha / (double)o) - 1e-3)};
-      }
+      int64_t beg = offsets[t];
+      int n = (int)(offsets[t + 1] - beg);
       int x0 = (t % tiles_x) * tile, y0 = (t / tiles_x) * tile;
+      int npx = std::min(tile, W - x0);
+      load_tile(beg, n, ids, means2d, conics, opac, radii, min_alpha, sp);
       for (int py = y0; py < std::min(y0 + tile, H); ++py) {
-        for (int px = x0; px < std::min(x0 + tile, W); ++px) {
-          S cxp = (S)px + (S)0.5, cyp = (S)py + (S)0.5;
-          S T = 1;
-          int last = 0;
-          std::fill(acc.begin(), acc.end(), (S)0);
-          for (int k = 0; k < n; ++k) {
-            const Splat<S>& s = sp[k];
-            S dx = s.u - cxp, dy = s.v - cyp;
-            S power = gf::splat_power(s.A, s.B, s.C, dx, dy);
-            if (power > 0 || power < s.log_cut) continue;
+        std::fill(acc.begin(), acc.begin() + (size_t)npx * F, (S)0);
+        for (int p = 0; p < npx; ++p) { T[p] = 1; last[p] = 0; done[p] = false; }
+        int alive = npx;
+        for (int k = 0; k < n && alive > 0; ++k) {
+          const Splat<S>& s = sp[k];
+          if (py < s.y0 || py > s.y1) continue;
+          int a = std::max(s.x0, x0), b = std::min(s.x1, x0 + npx - 1);
+          if (a > b) continue;
+          row_powers(s, a, b, py, pw);
+          const S* f = feat + (int64_t)ids[beg + k] * F;
+          for (int px = a; px <= b; ++px) {
+            int p = px - x0;
+            S power = pw[px - a];
+            if (done[p] || power > 0 || power < s.log_cut) continue;
             S alpha = std::min(amax, s.o * std::exp(power));
             if (alpha < amin) continue;
-            S Tn = T * (1 - alpha);
-            if (Tn < tmin) break;
-            const S* f = feat + (int64_t)ids[beg + k] * F;
-            S w = alpha * T;
-            for (int c = 0; c < F; ++c) acc[c] += w * f[c];
-            T = Tn;
-            last = k + 1;
+            S Tn = T[p] * (1 - alpha);
+            if (Tn < tmin) { done[p] = true; --alive; continue; }
+            S w = alpha * T[p];
+            S* ac = &acc[(size_t)p * F];
+            for (int c = 0; c < F; ++c) ac[c] += w * f[c];
+            T[p] = Tn;
+            last[p] = k + 1;
           }
-          int64_t pix = (int64_t)py * W + px;
-          for (int c = 0; c < F; ++c) out[pix * F + c] = acc[c] + T * bg[c];
-          T_out[pix] = T;
-          n_contrib[pix] = last;
+        }
+        for (int p = 0; p < npx; ++p) {
+          int64_t pix = (int64_t)py * W + x0 + p;
+          for (int c = 0; c < F; ++c) out[pix * F + c] = acc[(size_t)p * F + c] + T[p] * bg[c];
+          T_out[pix] = T[p];
+          n_contrib[pix] = last[p];
         }
       }
     }
   }
 }
 
+// Backward: per row, splats back to front from the last contributor; the transmittance in front
+// of splat k is recovered as T / (1 - alpha_k) (alpha <= 0.99 and T >= 1e-4 keep this exact enough).
 template <typename S>
 void raster_bwd_impl(int64_t N, int W, int H, int tile, int F, double min_alpha, const S* means2d,
-                     const S* conics, const S* opac, const S* feat, const S* bg, const int64_t* offsets,
-                     const int32_t* ids, const S* T_final, const int32_t* n_contrib, const S* g_out,
-                     const S* g_T, S* g_means2d, S* g_conics, S* g_opac, S* g_feat) {
+                     const S* conics, const S* opac, const int32_t* radii, const S* feat, const S* bg,
+                     const int64_t* offsets, const int32_t* ids, const S* T_final, const int32_t* n_contrib,
+                     const S* g_out, const S* g_T, S* g_means2d, S* g_conics, S* g_opac, S* g_feat) {
   int tiles_x = (W + tile - 1) / tile, tiles_y = (H + tile - 1) / tile;
   const S amin = (S)min_alpha, amax = (S)gf::kAlphaMax;
   int nt = num_threads();
   // per-thread accumulators (Gaussians are shared between tiles), reduced at the end
   const int G = 6 + F;  // u, v, A, B, C, o, features
-  std::vector<std::vector<S>> per_thread(nt);
+  // gradients are summed over many pixels with cancellation: accumulate them in double
+  std::vector<std::vector<double>> per_thread(nt);
 #pragma omp parallel
   {
-    std::vector<S>& buf = per_thread[thread_id()];
-    buf.assign((size_t)N * G, (S)0);
+    std::vector<double>& buf = per_thread[thread_id()];
+    buf.assign((size_t)N * G, 0.0);
     std::vector<Splat<S>> sp;
-    std::vector<S> local;  // gradients of this tile's splats, indexed by position in the tile list
-    std::vector<S> Sacc(F);
+    std::vector<double> local;  // gradients of this tile's splats, by position in the tile list
+    std::vector<S> Sacc((size_t)kMaxTile * F);
+    S T[kMaxTile], Tf[kMaxTile], gT[kMaxTile], pw[kMaxTile];
+    int last[kMaxTile];
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < tiles_x * tiles_y; ++t) {
-      int64_t beg = offsets[t], end = offsets[t + 1];
-      int n = (int)(end - beg);
+      int64_t beg = offsets[t];
+      int n = (int)(offsets[t + 1] - beg);
       if (n == 0) continue;
-      sp.resize(n);
-      local.assign((size_t)n * G, (S)0);
-      for (int k = 0; k < n; ++k) {
-        int32_t g = ids[beg + k];
-        S o = opac[g];
-        sp[k] = {means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1], conics[3 * g + 2], o,
-                 (S)(std::log(min_alpha / (double)o) - 1e-3)};
-      }
+      local.assign((size_t)n * G, 0.0);
       int x0 = (t % tiles_x) * tile, y0 = (t / tiles_x) * tile;
+      int npx = std::min(tile, W - x0);
+      load_tile(beg, n, ids, means2d, conics, opac, radii, min_alpha, sp);
       for (int py = y0; py < std::min(y0 + tile, H); ++py) {
-        for (int px = x0; px < std::min(x0 + tile, W); ++px) {
-          int64_t pix = (int64_t)py * W + px;
-          int last = n_contrib[pix];
-          if (last == 0) continue;
-          S cxp = (S)px + (S)0.5, cyp = (S)py + (S)0.5;
-          S Tf = T_final[pix];
-          S T = Tf;
-          const S* go = g_out + pix * F;
-          S gT = g_T[pix];
-          for (int c = 0; c < F; ++c) Sacc[c] = Tf * bg[c];  // what lies behind splat k
-          for (int k = last - 1; k >= 0; --k) {
-            const Splat<S>& s = sp[k];
-            S dx = s.u - cxp, dy = s.v - cyp;
-            S power = gf::splat_power(s.A, s.B, s.C, dx, dy);
-            if (power > 0 || power < s.log_cut) continue;
+        int maxlast = 0;
+        for (int p = 0; p < npx; ++p) {
+          int64_t pix = (int64_t)py * W + x0 + p;
+          last[p] = n_contrib[pix];
+          maxlast = std::max(maxlast, last[p]);
+          Tf[p] = T[p] = T_final[pix];
+          gT[p] = g_T[pix];
+          for (int c = 0; c < F; ++c) Sacc[(size_t)p * F + c] = Tf[p] * bg[c];  // what lies behind
+        }
+        for (int k = maxlast - 1; k >= 0; --k) {
+          const Splat<S>& s = sp[k];
+          if (py < s.y0 || py > s.y1) continue;
+          int a = std::max(s.x0, x0), b = std::min(s.x1, x0 + npx - 1);
+          if (a > b) continue;
+          row_powers(s, a, b, py, pw);
+          const S* f = feat + (int64_t)ids[beg + k] * F;
+          double* lg = &local[(size_t)k * G];
+          const S cyp = (S)py + (S)0.5;
+          for (int px = a; px <= b; ++px) {
+            int p = px - x0;
+            S power = pw[px - a];
+            if (k >= last[p] || power > 0 || power < s.log_cut) continue;
             S Gk = std::exp(power);
             S raw = s.o * Gk;
             S alpha = std::min(amax, raw);
             if (alpha < amin) continue;
             S one_m = 1 - alpha;
-            T = T / one_m;  // transmittance in front of splat k
-            const S* f = feat + (int64_t)ids[beg + k] * F;
-            S* lg = &local[(size_t)k * G];
-            S w = alpha * T;
-            S g_alpha = -gT * Tf / one_m;
+            T[p] = T[p] / one_m;  // transmittance in front of splat k
+            const S* go = g_out + ((int64_t)py * W + px) * F;
+            S* sa = &Sacc[(size_t)p * F];
+            S w = alpha * T[p];
+            S g_alpha = -gT[p] * Tf[p] / one_m;
             for (int c = 0; c < F; ++c) {
               lg[6 + c] += w * go[c];
-              g_alpha += go[c] * (T * f[c] - Sacc[c] / one_m);
-              Sacc[c] += w * f[c];
+              g_alpha += go[c] * (T[p] * f[c] - sa[c] / one_m);
+              sa[c] += w * f[c];
             }
             if (raw > amax) continue;  // clamped alpha: no gradient to opacity or shape
+            S dx = s.u - ((S)px + (S)0.5), dy = s.v - cyp;
             lg[5] += g_alpha * Gk;
             S g_power = g_alpha * s.o * Gk;
             lg[0] += g_power * -(s.A * dx + s.B * dy);
@@ -291,28 +334,24 @@ void raster_bwd_impl(int64_t N, int W, int H, int tile, int F, double min_alpha,
         }
       }
       for (int k = 0; k < n; ++k) {
-        S* dst = &buf[(size_t)ids[beg + k] * G];
-        const S* src = &local[(size_t)k * G];
+        double* dst = &buf[(size_t)ids[beg + k] * G];
+        const double* src = &local[(size_t)k * G];
         for (int j = 0; j < G; ++j) dst[j] += src[j];
       }
     }
   }
 #pragma omp parallel for schedule(static)
   for (int64_t i = 0; i < N; ++i) {
-    S tot[64];
-    S* acc = G <= 64 ? tot : nullptr;
-    std::vector<S> big;
-    if (!acc) { big.assign(G, 0); acc = big.data(); }
-    for (int j = 0; j < G; ++j) acc[j] = 0;
+    std::vector<double> acc(G, 0.0);
     for (int th = 0; th < nt; ++th) {
       if (per_thread[th].empty()) continue;
-      const S* src = &per_thread[th][(size_t)i * G];
+      const double* src = &per_thread[th][(size_t)i * G];
       for (int j = 0; j < G; ++j) acc[j] += src[j];
     }
-    g_means2d[2 * i] = acc[0]; g_means2d[2 * i + 1] = acc[1];
-    g_conics[3 * i] = acc[2]; g_conics[3 * i + 1] = acc[3]; g_conics[3 * i + 2] = acc[4];
-    g_opac[i] = acc[5];
-    for (int c = 0; c < F; ++c) g_feat[i * F + c] = acc[6 + c];
+    g_means2d[2 * i] = (S)acc[0]; g_means2d[2 * i + 1] = (S)acc[1];
+    g_conics[3 * i] = (S)acc[2]; g_conics[3 * i + 1] = (S)acc[3]; g_conics[3 * i + 2] = (S)acc[4];
+    g_opac[i] = (S)acc[5];
+    for (int c = 0; c < F; ++c) g_feat[i * F + c] = (S)acc[6 + c];
   }
 }
 
@@ -379,6 +418,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   int64_t N = means2d.size(0);
   int F = (int)feat.size(1);
   TORCH_CHECK(bg.numel() == F, "background must have one value per feature channel");
+  TORCH_CHECK(tile >= 1 && tile <= kMaxTile, "tile size must be in [1, ", kMaxTile, "]");
   auto opts = means2d.options();
   auto out = torch::empty({H, W, F}, opts), T = torch::empty({H, W}, opts);
   auto nc = torch::empty({H, W}, opts.dtype(torch::kInt32));
@@ -389,7 +429,8 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
     bin_impl<scalar_t>(N, means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
                        (int)W, (int)H, (int)tile, offsets, ids);
     raster_fwd_impl<scalar_t>((int)W, (int)H, (int)tile, F, min_alpha, means2d.data_ptr<scalar_t>(),
-                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), feat.data_ptr<scalar_t>(),
+                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                              feat.data_ptr<scalar_t>(),
                               bg.data_ptr<scalar_t>(), offsets.data(), ids.data(), out.data_ptr<scalar_t>(),
                               T.data_ptr<scalar_t>(), nc.data_ptr<int32_t>());
   });
@@ -399,7 +440,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
 }
 
 std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                              torch::Tensor feat, torch::Tensor bg, torch::Tensor offsets,
+                                              torch::Tensor radii, torch::Tensor feat, torch::Tensor bg, torch::Tensor offsets,
                                               torch::Tensor ids, torch::Tensor T_final, torch::Tensor n_contrib,
                                               torch::Tensor g_out, torch::Tensor g_T, int64_t W, int64_t H,
                                               int64_t tile, double min_alpha) {
@@ -411,7 +452,8 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
   auto g_o = torch::zeros_like(opac), g_f = torch::zeros_like(feat);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {
     raster_bwd_impl<scalar_t>(N, (int)W, (int)H, (int)tile, F, min_alpha, means2d.data_ptr<scalar_t>(),
-                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), feat.data_ptr<scalar_t>(),
+                              conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                              feat.data_ptr<scalar_t>(),
                               bg.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
                               T_final.data_ptr<scalar_t>(), n_contrib.data_ptr<int32_t>(),
                               g_out.data_ptr<scalar_t>(), g_T.data_ptr<scalar_t>(), g_m.data_ptr<scalar_t>(),
