@@ -9,7 +9,6 @@ median of ``repeats`` runs after one warm-up.
 
 from __future__ import annotations
 
-import math
 
 import torch
 

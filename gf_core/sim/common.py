@@ -180,6 +180,28 @@ class Measure:
                 "kinetic": kin, "potential": pot}
 
 
+class SolverBase:
+    """What DFSPH and PBF share: the particle lattice (spacing 2r, support h = 4r), the rest volume
+    V and mass, the wall particles, gravity, the speed safety net and the independent measure.
+    ``rest_volume(h, spacing)`` gives the solver's V; ``measure_scale`` maps the cubic-spline
+    lattice volume to the same rest state (1 unless V was estimated from data)."""
+
+    def __init__(self, params, domain: Domain, rest_volume, *, device="cpu", dtype=torch.float32,
+                 measure_scale: float = 1.0):
+        params.validate()
+        self.p, self.domain = params, domain
+        r = params.particle_radius
+        self.spacing = 2.0 * r
+        self.h = 4.0 * r
+        self.V = rest_volume(self.h, self.spacing)
+        self.mass = params.rest_density * self.V
+        self.wall = box_wall_particles(domain, self.spacing, layers=2, dtype=dtype, device=device)
+        self.g = torch.tensor(params.gravity, dtype=dtype, device=device)
+        self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(float(self.g.norm()), 1e-3) * domain.height) + 1.0
+        self.measure = Measure(h=self.h, V=lattice_volume(kernels.cubic, self.h, self.spacing) * measure_scale,
+                               wall=self.wall, gravity=self.g, z0=domain.lo[2], mass=self.mass)
+
+
 @dataclass
 class FrameResult:
     positions: list = field(default_factory=list)

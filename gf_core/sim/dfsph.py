@@ -26,8 +26,8 @@ import torch
 
 from ..neighbors import neighbor_pairs
 from . import kernels
-from .common import (Domain, Measure, box_wall_particles, enforce_box, implicit_viscosity,
-                     lattice_volume, limit_speed, xsph, even_step)
+from .common import (Domain, SolverBase, enforce_box, even_step, implicit_viscosity, lattice_volume,
+                     limit_speed, xsph)
 
 
 @dataclass
@@ -65,22 +65,12 @@ class DFSPHParams:
             raise InputError("dfsph", f"viscosity must be >= 0, got {self.viscosity}")
 
 
-class DFSPH:
+class DFSPH(SolverBase):
     name = "dfsph"
 
     def __init__(self, params: DFSPHParams, domain: Domain, *, device="cpu", dtype=torch.float32):
-        params.validate()
-        self.p, self.domain = params, domain
-        r = params.particle_radius
-        self.spacing = 2.0 * r
-        self.h = 4.0 * r
-        self.V = lattice_volume(kernels.cubic, self.h, self.spacing)
-        self.mass = params.rest_density * self.V
-        self.wall = box_wall_particles(domain, self.spacing, layers=2, dtype=dtype, device=device)
-        self.g = torch.tensor(params.gravity, dtype=dtype, device=device)
-        self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(float(self.g.norm()), 1e-3) * domain.height) + 1.0
-        self.measure = Measure(h=self.h, V=self.V, wall=self.wall, gravity=self.g, z0=domain.lo[2],
-                               mass=self.mass)
+        super().__init__(params, domain, lambda h, d: lattice_volume(kernels.cubic, h, d),
+                         device=device, dtype=dtype)
         self.warm = 0.5  # warm start: half the previous step's kappa (as SPlisHSPlasH does)
         self.margin = 0.1 * self.spacing  # the box clamp is only a safety net: walls hold the fluid  # the box clamp is a safety net, walls do the work
         self._kappa = self._kappa_v = None

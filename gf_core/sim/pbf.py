@@ -30,8 +30,8 @@ import torch
 from ..errors import InputError
 from ..neighbors import neighbor_pairs
 from . import kernels
-from .common import (Domain, Measure, box_wall_particles, enforce_box, even_step, implicit_viscosity,
-                     lattice_volume, limit_speed, xsph)
+from .common import (Domain, SolverBase, enforce_box, even_step, implicit_viscosity, lattice_volume,
+                     limit_speed, xsph)
 
 
 @dataclass
@@ -66,20 +66,15 @@ class PBFParams:
                 raise InputError("pbf", f"{k} must be >= 0, got {getattr(self, k)}")
 
 
-class PBF:
+class PBF(SolverBase):
     name = "pbf"
 
     def __init__(self, params: PBFParams, domain: Domain, *, device="cpu", dtype=torch.float32):
-        params.validate()
-        self.p, self.domain = params, domain
         r = params.particle_radius
-        self.spacing = 2.0 * r
-        self.h = 4.0 * r
-        self.V = params.rest_volume or lattice_volume(kernels.poly6, self.h, self.spacing)
-        self.mass = params.rest_density * self.V
-        self.wall = box_wall_particles(domain, self.spacing, layers=2, dtype=dtype, device=device)
-        self.g = torch.tensor(params.gravity, dtype=dtype, device=device)
-        self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(float(self.g.norm()), 1e-3) * domain.height) + 1.0
+        lattice_V = lattice_volume(kernels.poly6, 4.0 * r, 2.0 * r) if r > 0 and math.isfinite(r) else 1.0
+        super().__init__(params, domain, lambda h, d: params.rest_volume or lattice_V,
+                         device=device, dtype=dtype,
+                         measure_scale=(params.rest_volume or lattice_V) / lattice_V)
         # relaxation eps in units of sum |grad C|^2 of a lattice particle
         n = int(math.ceil(self.h / self.spacing)) + 1
         grid = torch.arange(-n, n + 1, dtype=torch.float64) * self.spacing
@@ -89,9 +84,6 @@ class PBF:
         self.grad2_lattice = float((gl * gl).sum())
         self.eps = params.relaxation * self.grad2_lattice
         self.w_dq = float(kernels.poly6(torch.tensor(params.scorr_dq * self.h), self.h))
-        cubic_V = lattice_volume(kernels.cubic, self.h, self.spacing) * (self.V / lattice_volume(kernels.poly6, self.h, self.spacing))
-        self.measure = Measure(h=self.h, V=cubic_V, wall=self.wall, gravity=self.g, z0=domain.lo[2],
-                               mass=self.mass)
 
     @classmethod
     def from_positions(cls, positions, domain: Domain, *, rest_density: float = 1000.0, device="cpu",
