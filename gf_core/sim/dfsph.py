@@ -72,7 +72,7 @@ class DFSPH(SolverBase):
         super().__init__(params, domain, lambda h, d: lattice_volume(kernels.cubic, h, d),
                          device=device, dtype=dtype)
         self.warm = 0.5  # warm start: half the previous step's kappa (as SPlisHSPlasH does)
-        self.margin = 0.1 * self.spacing  # the box clamp is only a safety net: walls hold the fluid  # the box clamp is a safety net, walls do the work
+        self.margin = 0.1 * self.spacing  # the box clamp is only a safety net: walls hold the fluid
         self._kappa = self._kappa_v = None
         self._cache = None  # neighbours/densities/alpha of the current positions
 
@@ -163,8 +163,9 @@ class DFSPH(SolverBase):
         """Divergence free: div_i(v) -> 0 (error measured as div * dt); particles with fewer than
         20 neighbours (fluid + wall) are skipped: their divergence estimate is meaningless."""
         enough = nb["count"] >= 20
+        zero = torch.zeros_like(nb["rho"])
         self._kappa_v, it, err = self._solve(
-            v, nb, dt, self._kappa_v, lambda vv: torch.where(enough, self._div(vv, nb), torch.zeros_like(nb["rho"])) * dt,
+            v, nb, dt, self._kappa_v, lambda vv: torch.where(enough, self._div(vv, nb), zero) * dt,
             dt * dt, self.p.divergence_tol, 1, self.warm, False)
         return it, err
 
@@ -175,9 +176,9 @@ class DFSPH(SolverBase):
         nb = self._cache[2] if cached else self._neighbourhood(x)
         n = x.shape[0]
         vmax_now = float(v.norm(dim=-1).max()) if n else 0.0
-        dt = p.cfl * self.spacing / max(vmax_now, 1e-9)
+        dt = p.cfl * self.spacing / max(vmax_now, 1e-9)  # 1. CFL
         dt = even_step(min(max(dt, p.dt_min), p.dt_max), dt_max)
-        # 1. non-pressure forces
+        # 2. non-pressure forces
         v.add_(dt * self.g)
         if p.xsph:
             v.copy_(xsph(v, nb["i"], nb["j"], nb["r"], self.V, self.h, p.xsph))
