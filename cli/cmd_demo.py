@@ -10,6 +10,7 @@ Reconstruction (``gf-cli reconstruct``) slots in between 3 and 4 once it exists.
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -54,10 +55,10 @@ def run(args) -> int:
           f"in {report['simulate']['seconds']} s -> {out / 'sim.h5'}")
 
     t0 = time.perf_counter()
-    rargs = type("A", (), dict(sim=out / "sim.h5", out=out / "dataset", views=5, test_views=0,
+    rargs = argparse.Namespace(sim=out / "sim.h5", out=out / "dataset", views=5, test_views=0,
                                resolution=args.resolution, samples=args.samples, denoise=False, seed=0,
                                frames="::2", material="water", fov=40.0, show_container=False,
-                               threads=0, blender=None))()
+                               threads=0, blender=None)
     cmd_render_dataset.run(rargs)
     report["render"] = {"seconds": round(time.perf_counter() - t0, 2)}
     print(f"[2/4] rendered the dataset in {report['render']['seconds']} s -> {out / 'dataset'}")

@@ -62,10 +62,6 @@ def neighbor_pairs(x: torch.Tensor, radius: float, y: torch.Tensor | None = None
     return i[perm], j[perm]
 
 
-def count_per(i: torch.Tensor, n: int) -> torch.Tensor:
-    return torch.bincount(i, minlength=n)
-
-
 def knn(x: torch.Tensor, k: int, radius: float, y: torch.Tensor | None = None):
     """Up to ``k`` nearest neighbours within ``radius`` (paper Sec. 4.1.2 uses K = 64):
     (N, k) indices (-1 where fewer) and distances (inf where fewer)."""

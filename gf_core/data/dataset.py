@@ -55,10 +55,6 @@ class Sample:
         return self.image * a + bg * (1.0 - a)
 
 
-class VideoDecodeError(InputError):
-    pass
-
-
 @dataclass
 class FluidDataset:
     """Frames of a multiview fluid capture, with lazy decoding.
@@ -155,14 +151,23 @@ class FluidDataset:
             for k, fr in enumerate(frames):
                 self._remember((rec.file, k), fr)
             if rec.frame_index >= len(frames):
-                raise VideoDecodeError(rec.file, f"frame {rec.frame_index} requested but the video "
-                                                 f"decodes to {len(frames)} frames")
+                raise InputError(rec.file, f"frame {rec.frame_index} requested but the video "
+                                           f"decodes to {len(frames)} frames")
             img = frames[rec.frame_index]
         cam = rec.camera
         if img.shape[0] != cam.height or img.shape[1] != cam.width:
             raise InputError(rec.file, f"image is {img.shape[1]}x{img.shape[0]} but its camera "
                                        f"says {cam.width}x{cam.height}")
         return img
+
+    @staticmethod
+    def _gray(raw: np.ndarray) -> np.ndarray:
+        """One channel (Rec. 601 luma for RGB), kept in the file's dtype range."""
+        color = raw[:, :, :3] if raw.shape[2] >= 3 else raw[:, :, :1]
+        if color.shape[2] == 1:
+            return color
+        luma = (color.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
+        return np.rint(luma).astype(raw.dtype) if raw.dtype.kind == "u" else luma
 
     def load(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(image (H, W, C) float32 with C = ``channels``, alpha (H, W) or None) as numpy."""
@@ -171,9 +176,7 @@ class FluidDataset:
         alpha = to_float(raw[:, :, 3]) if raw.shape[2] == 4 else None
         color = raw[:, :, :3] if raw.shape[2] >= 3 else raw[:, :, :1]
         if self.channels == 1:
-            if color.shape[2] == 3:  # Rec. 601 luma, in the file's dtype range
-                color = (color.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
-                color = np.rint(color).astype(raw.dtype) if raw.dtype.kind == "u" else color
+            color = self._gray(raw)
             if self.background_removal is not None:
                 color = self._remove_background(rec, color)
         elif color.shape[2] == 1:
@@ -182,17 +185,12 @@ class FluidDataset:
 
     def _remove_background(self, rec: FrameRecord, color: np.ndarray) -> np.ndarray:
         ref_rec = self.frames[self._first_of_view[rec.view_id]]
-        ref = self._raw(ref_rec)
-        ref = ref[:, :, :3] if ref.shape[2] >= 3 else ref[:, :, :1]
-        if ref.shape[2] == 3:
-            ref = (ref.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
-            ref = np.rint(ref).astype(color.dtype) if color.dtype.kind == "u" else ref
+        ref = self._gray(self._raw(ref_rec))
         if self.background_removal == "xor":
             if color.dtype.kind != "u":
                 raise InputError(rec.file, "XOR background removal needs integer (8/16-bit) images")
             return np.bitwise_xor(color, ref.astype(color.dtype))
-        diff = np.abs(to_float(color) - to_float(ref.astype(color.dtype)))
-        return diff
+        return np.abs(to_float(color) - to_float(ref.astype(color.dtype)))
 
     def _mask(self, rec: FrameRecord) -> np.ndarray | None:
         if rec.mask_file is None:
