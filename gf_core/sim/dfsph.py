@@ -2,7 +2,8 @@
 rho~ = rho / rho0 and rest volumes V = m / rho0.
 
 One step, read top to bottom in ``step``:
-  1. CFL time step dt = cfl * 2r / max|v| (clamped to [dt_min, dt_max] and the frame end)
+  1. time step: the CFL limit dt = cfl * 2r / max|v| and the force limit
+     dt = force_cfl * sqrt(2r / |g|) (Monaghan 1992), clamped to [dt_min, dt_max] and the frame end
   2. non-pressure forces: gravity, XSPH smoothing, implicit viscosity      -> v*
   3. constant-density solve (Jacobi on kappa >= 0, warm-started with half the last kappa):
         v        = v* - dt [sum_j V (kappa_i + kappa_j) gradW_ij + sum_b V (kappa_i + kappa_b) gradW_ib]
@@ -36,6 +37,7 @@ class DFSPHParams:
     rest_density: float = 1000.0
     gravity: tuple = (0.0, 0.0, -9.81)
     cfl: float = 0.4
+    force_cfl: float = 0.15        # dt <= force_cfl sqrt(2r / |g|): a fluid at rest has no CFL limit
     dt_min: float = 1e-5
     dt_max: float = 5e-3
     density_tol: float = 5e-4      # 0.05 % mean compression
@@ -49,8 +51,8 @@ class DFSPHParams:
     def validate(self):
         from ..errors import InputError
 
-        for k in ("particle_radius", "rest_density", "cfl", "dt_min", "dt_max", "density_tol",
-                  "divergence_tol"):
+        for k in ("particle_radius", "rest_density", "cfl", "force_cfl", "dt_min", "dt_max",
+                  "density_tol", "divergence_tol"):
             val = getattr(self, k)
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise InputError("dfsph", f"{k} must be a positive number, got {val!r}")
@@ -176,7 +178,7 @@ class DFSPH(SolverBase):
         nb = self._cache[2] if cached else self._neighbourhood(x)
         n = x.shape[0]
         vmax_now = float(v.norm(dim=-1).max()) if n else 0.0
-        dt = p.cfl * self.spacing / max(vmax_now, 1e-9)  # 1. CFL
+        dt = min(p.cfl * self.spacing / max(vmax_now, 1e-9), self.dt_force)  # 1. CFL and force limits
         dt = even_step(min(max(dt, p.dt_min), p.dt_max), dt_max)
         # 2. non-pressure forces
         v.add_(dt * self.g)

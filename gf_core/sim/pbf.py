@@ -1,7 +1,8 @@
 """Position Based Fluids (Macklin & Mueller 2013), in normalised densities rho~ = V sum_j W_ij.
 
 One substep, read top to bottom in ``step``:
-  0. dt = min(dt, cfl 2r / max|v|), dividing the time to the next frame evenly
+  0. dt = min(dt, cfl 2r / max|v|, force_cfl sqrt(2r / |g|)), dividing the time to the next
+     frame evenly
   1. v += dt g ;  x* = x + dt v                         (predict)
   2. neighbours of x* (fluid and wall particles)
   3. ``iterations`` times (their Algorithm 1):
@@ -41,6 +42,7 @@ class PBFParams:
     gravity: tuple = (0.0, 0.0, -9.81)
     dt: float = 1.0 / 240.0        # substep (upper bound)
     cfl: float = 1.0               # ... also limited to cfl * 2r / max|v|
+    force_cfl: float = 0.15        # ... and to force_cfl * sqrt(2r / |g|) (a fluid at rest)
     iterations: int = 4
     relaxation: float = 0.01       # eps, relative to sum |grad C|^2 of a lattice particle
     scorr_k: float = 0.1
@@ -53,7 +55,7 @@ class PBFParams:
     max_speed: float | None = None
 
     def validate(self):
-        for k in ("particle_radius", "rest_density", "dt", "relaxation", "cfl"):
+        for k in ("particle_radius", "rest_density", "dt", "relaxation", "cfl", "force_cfl"):
             val = getattr(self, k)
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise InputError("pbf", f"{k} must be a positive number, got {val!r}")
@@ -136,7 +138,7 @@ class PBF(SolverBase):
     def step(self, x: torch.Tensor, v: torch.Tensor, dt_max: float) -> dict:
         p = self.p
         vnow = float(v.norm(dim=-1).max()) if v.shape[0] else 0.0
-        dt = even_step(min(p.dt, p.cfl * self.spacing / max(vnow, 1e-9)), dt_max)
+        dt = even_step(min(p.dt, p.cfl * self.spacing / max(vnow, 1e-9), self.dt_force), dt_max)
         x0 = x.clone()
         v.add_(dt * self.g)
         limited = limit_speed(v, self.vmax)

@@ -13,7 +13,7 @@ import torch
 from ..errors import GFError
 from . import initial_state, make_solver, prepare_particles, run_frames
 
-CASES = ("hydrostatic", "large_dt", "high_viscosity", "stiff", "coincident", "isolated",
+CASES = ("hydrostatic", "large_dt", "large_dt_at_rest", "high_viscosity", "stiff", "coincident", "isolated",
          "outside_box", "one_particle", "zero_particles")
 
 
@@ -23,6 +23,9 @@ def _setup(case: str, solver: str, particles: int):
     if case == "hydrostatic":
         scene = "hydrostatic_tank"
     elif case == "large_dt":  # a step cap 10x the default: the CFL limit must take over
+        overrides = {"dt_max": 0.05} if solver == "dfsph" else {"dt": 1.0 / 24.0}
+    elif case == "large_dt_at_rest":  # the same cap on water at rest: no CFL limit applies
+        scene = "hydrostatic_tank"
         overrides = {"dt_max": 0.05} if solver == "dfsph" else {"dt": 1.0 / 24.0}
     elif case == "high_viscosity":
         scene = "honey_cone"
