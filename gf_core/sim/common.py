@@ -100,17 +100,17 @@ def check_finite(step: int, t: float, **tensors) -> None:
                                   "reduce the time step (cfl / dt_max) or stiffness")
 
 
-def xsph(v, i, j, r, V, h, c: float):
+def xsph(v, i, j, r, V, h, c: float, kernel: kernels.Kernel = kernels.CUBIC):
     """XSPH velocity smoothing: v_i += c sum_j V (v_j - v_i) W_ij (Monaghan 1989)."""
     if c == 0.0 or i.numel() == 0:
         return v
-    w = (V * c) * kernels.cubic(r, h)
+    w = (V * c) * kernel.W(r, h)
     dv = torch.zeros_like(v).index_add_(0, i, (v[j] - v[i]) * w[:, None])
     return v + dv
 
 
 def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, max_iters: int = 50,
-                       tol: float = 1e-4):
+                       tol: float = 1e-4, kernel: kernels.Kernel = kernels.CUBIC):
     """Solve (I - nu dt L) v_new = v with conjugate gradients, L the SPH Laplacian of Weiler et al.
     2018: (L v)_i = 10 sum_j V ((v_i - v_j) . x_ij) / (|x_ij|^2 + 0.01 h^2) grad W_ij
     (+ the same with wall particles at rest). Unconditionally stable: honey-like viscosity needs
@@ -119,11 +119,11 @@ def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, max_iters:
         return v, 0
     d = x[i] - x[j]
     r = d.norm(dim=-1)
-    g = kernels.cubic_grad(d, r, h)
+    g = kernel.grad(d, r, h)
     coef = 10.0 * V / (r * r + 0.01 * h * h)
     db = x[bi] - xb[bb]
     rb = db.norm(dim=-1)
-    gb = kernels.cubic_grad(db, rb, h)
+    gb = kernel.grad(db, rb, h)
     coef_b = 10.0 * V / (rb * rb + 0.01 * h * h)
 
     def A(u):  # (I - nu dt L) u
@@ -153,8 +153,9 @@ def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, max_iters:
 
 @dataclass
 class Measure:
-    """Independent measurement of a state (not the solver's residual): densities with the cubic
-    spline (support 4 r) and the lattice rest volume, wall particles included."""
+    """Independent measurement of a state (not the solver's residual): densities recomputed from
+    the positions with the solver's kernel (support 4 r) and its lattice rest volume, wall
+    particles included."""
 
     h: float
     V: float
@@ -162,17 +163,19 @@ class Measure:
     gravity: torch.Tensor
     z0: float
     mass: float
+    kernel: kernels.Kernel = kernels.CUBIC
 
     def __call__(self, x: torch.Tensor, v: torch.Tensor) -> dict:
         n = x.shape[0]
         if n == 0:
             return {"density_err_mean": 0.0, "density_err_max": 0.0, "kinetic": 0.0, "potential": 0.0}
         i, j = neighbor_pairs(x, self.h)
-        rho = torch.full((n,), kernels.cubic_zero(self.h), dtype=x.dtype, device=x.device)
-        rho.index_add_(0, i, kernels.cubic((x[i] - x[j]).norm(dim=-1), self.h))
+        W = self.kernel.W
+        rho = torch.full((n,), self.kernel.zero(self.h), dtype=x.dtype, device=x.device)
+        rho.index_add_(0, i, W((x[i] - x[j]).norm(dim=-1), self.h))
         if self.wall.numel():
             bi, bb = neighbor_pairs(x, self.h, self.wall)
-            rho.index_add_(0, bi, kernels.cubic((x[bi] - self.wall[bb]).norm(dim=-1), self.h))
+            rho.index_add_(0, bi, W((x[bi] - self.wall[bb]).norm(dim=-1), self.h))
         err = (rho * self.V - 1.0).clamp_min(0.0)  # compression (free-surface deficit is not error)
         kin = 0.5 * self.mass * float((v * v).sum())
         pot = -self.mass * float(((x - x.new_tensor([0, 0, self.z0])) @ self.gravity.to(x)).sum())
@@ -183,13 +186,14 @@ class Measure:
 class SolverBase:
     """What DFSPH and PBF share: the particle lattice (spacing 2r, support h = 4r), the rest volume
     V and mass, the wall particles, gravity, the speed safety net and the independent measure.
-    ``rest_volume(h, spacing)`` gives the solver's V; ``measure_scale`` maps the cubic-spline
-    lattice volume to the same rest state (1 unless V was estimated from data)."""
+    ``rest_volume(h, spacing)`` gives the solver's V; ``kernel`` is the one the measurement (and
+    XSPH) uses; ``measure_scale`` maps its lattice volume to the same rest state (1 unless V was
+    estimated from data)."""
 
     def __init__(self, params, domain: Domain, rest_volume, *, device="cpu", dtype=torch.float32,
-                 measure_scale: float = 1.0):
+                 measure_scale: float = 1.0, kernel: kernels.Kernel = kernels.CUBIC):
         params.validate()
-        self.p, self.domain = params, domain
+        self.p, self.domain, self.kernel = params, domain, kernel
         r = params.particle_radius
         self.spacing = 2.0 * r
         self.h = 4.0 * r
@@ -204,8 +208,9 @@ class SolverBase:
         gnorm = float(self.g.norm())
         self.dt_force = params.force_cfl * math.sqrt(self.spacing / gnorm) if gnorm > 0 else math.inf
         self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(float(self.g.norm()), 1e-3) * domain.height) + 1.0
-        self.measure = Measure(h=self.h, V=lattice_volume(kernels.cubic, self.h, self.spacing) * measure_scale,
-                               wall=self.wall, gravity=self.g, z0=domain.lo[2], mass=self.mass)
+        self.measure = Measure(h=self.h, V=lattice_volume(kernel.W, self.h, self.spacing) * measure_scale,
+                               wall=self.wall, gravity=self.g, z0=domain.lo[2], mass=self.mass,
+                               kernel=kernel)
 
 
 @dataclass

@@ -40,7 +40,7 @@ class DFSPHParams:
     force_cfl: float = 0.15        # dt <= force_cfl sqrt(2r / |g|): a fluid at rest has no CFL limit
     dt_min: float = 1e-5
     dt_max: float = 5e-3
-    density_tol: float = 5e-4      # 0.05 % mean compression
+    density_tol: float = 1e-4      # 0.01 % mean compression
     divergence_tol: float = 1e-3   # 0.1 % per step
     min_iterations: int = 2
     max_iterations: int = 100
@@ -71,8 +71,8 @@ class DFSPH(SolverBase):
     name = "dfsph"
 
     def __init__(self, params: DFSPHParams, domain: Domain, *, device="cpu", dtype=torch.float32):
-        super().__init__(params, domain, lambda h, d: lattice_volume(kernels.cubic, h, d),
-                         device=device, dtype=dtype)
+        super().__init__(params, domain, lambda h, d: lattice_volume(kernels.wendland, h, d),
+                         device=device, dtype=dtype, kernel=kernels.WENDLAND)
         self.warm = 0.5  # warm start: half the previous step's kappa (as SPlisHSPlasH does)
         self.margin = 0.1 * self.spacing  # the box clamp is only a safety net: walls hold the fluid
         self._kappa = self._kappa_v = None
@@ -85,13 +85,13 @@ class DFSPH(SolverBase):
         bi, bb = neighbor_pairs(x, h, self.wall) if self.wall.numel() else (i[:0], j[:0])
         d = x[i] - x[j]
         r = d.norm(dim=-1)
-        gw = V * kernels.cubic_grad(d, r, h)                   # V gradW_ij
+        gw = V * kernels.wendland_grad(d, r, h)                   # V gradW_ij
         db = x[bi] - self.wall[bb]
-        gwb = V * kernels.cubic_grad(db, db.norm(dim=-1), h)   # V gradW_ib
+        gwb = V * kernels.wendland_grad(db, db.norm(dim=-1), h)   # V gradW_ib
         n = x.shape[0]
-        rho = torch.full((n,), V * kernels.cubic_zero(h), dtype=x.dtype, device=x.device)
-        rho.index_add_(0, i, V * kernels.cubic(r, h))
-        rho.index_add_(0, bi, V * kernels.cubic(db.norm(dim=-1), h))
+        rho = torch.full((n,), V * kernels.wendland_zero(h), dtype=x.dtype, device=x.device)
+        rho.index_add_(0, i, V * kernels.wendland(r, h))
+        rho.index_add_(0, bi, V * kernels.wendland(db.norm(dim=-1), h))
         gf = torch.zeros_like(x).index_add_(0, i, gw)
         gb = torch.zeros_like(x).index_add_(0, bi, gwb)
         s2 = torch.zeros(n, dtype=x.dtype, device=x.device).index_add_(0, i, (gw * gw).sum(-1))
@@ -103,7 +103,7 @@ class DFSPH(SolverBase):
         count = torch.bincount(i, minlength=n) + torch.bincount(bi, minlength=n)  # fluid + wall
         # wall pressure extrapolation weights (Adami et al. 2012)
         nw = self.wall.shape[0]
-        wb = kernels.cubic(db.norm(dim=-1), h)
+        wb = kernels.wendland(db.norm(dim=-1), h)
         wall_wsum = torch.zeros(nw, dtype=x.dtype, device=x.device).index_add_(0, bb, wb)
         wall_hydro = torch.zeros(nw, dtype=x.dtype, device=x.device).index_add_(0, bb, wb * ((-db) @ self.g))
         return dict(i=i, j=j, r=r, gw=gw, bi=bi, bb=bb, gwb=gwb, rho=rho, alpha=alpha, count=count,
@@ -183,11 +183,11 @@ class DFSPH(SolverBase):
         # 2. non-pressure forces
         v.add_(dt * self.g)
         if p.xsph:
-            v.copy_(xsph(v, nb["i"], nb["j"], nb["r"], self.V, self.h, p.xsph))
+            v.copy_(xsph(v, nb["i"], nb["j"], nb["r"], self.V, self.h, p.xsph, self.kernel))
         visc_it = 0
         if p.viscosity:
             vv, visc_it = implicit_viscosity(v, x, nb["i"], nb["j"], nb["bi"], nb["bb"], self.wall,
-                                             self.V, self.h, p.viscosity * dt)
+                                             self.V, self.h, p.viscosity * dt, kernel=self.kernel)
             v.copy_(vv)
         # 3. constant density
         it_rho, err_rho = self._density_solve(v, nb, dt)
