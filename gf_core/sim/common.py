@@ -63,14 +63,17 @@ def box_wall_particles(domain: Domain, spacing: float, layers: int, dtype=torch.
 
 
 def enforce_box(x: torch.Tensor, v: torch.Tensor, domain: Domain, margin: float):
-    """Clamp positions into the box (shrunk by ``margin``) and remove velocity into the walls.
-    Returns the number of particles that had to be moved."""
+    """Bring positions back into the box (shrunk by ``margin``) by mirroring the overshoot at the
+    face, and remove velocity into the walls. Mirroring, not clamping: particles clamped onto the
+    same face line or corner become coincident, and coincident particles have no pressure gradient
+    to separate them (a cluster of them then moves as one). Returns the number of particles moved."""
     lo = torch.tensor(domain.lo, dtype=x.dtype, device=x.device) + margin
     hi = torch.tensor(domain.hi, dtype=x.dtype, device=x.device) - margin
     below, above = x < lo, x > hi
     n = int((below | above).any(1).sum())
     if n:
-        x.copy_(torch.maximum(torch.minimum(x, hi), lo))
+        mirrored = torch.where(below, 2 * lo - x, torch.where(above, 2 * hi - x, x))
+        x.copy_(torch.maximum(torch.minimum(mirrored, hi), lo))
         v.copy_(torch.where(below, v.clamp_min(0.0), torch.where(above, v.clamp_max(0.0), v)))
     return n
 
