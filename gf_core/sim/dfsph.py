@@ -16,6 +16,10 @@ One step, read top to bottom in ``step``:
   5. divergence-free solve: the same iteration with residual dt * D rho~_i / Dt, until its mean
      is below divergence_tol (particles with < 20 neighbours are skipped).
 Walls are lattice particles continuing the fluid lattice outside the box (``common``).
+Kernel: Wendland C2 with support 4r (``kernels.WENDLAND``) for densities, gradients, XSPH and
+viscosity. With the cubic spline a fluid lattice under hydrostatic pressure is unstable (its
+speed grows ten-fold per 0.1 s from round-off) and rearranges into a glass; with Wendland C2 it
+stays at rest (BENCHMARKS.md, "Hydrostatic tank").
 """
 
 from __future__ import annotations
