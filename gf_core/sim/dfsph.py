@@ -75,27 +75,27 @@ class DFSPH(SolverBase):
     name = "dfsph"
 
     def __init__(self, params: DFSPHParams, domain: Domain, *, device="cpu", dtype=torch.float32):
-        super().__init__(params, domain, lambda h, d: lattice_volume(kernels.wendland, h, d),
+        super().__init__(params, domain, lambda h, d: lattice_volume(kernels.WENDLAND.W, h, d),
                          device=device, dtype=dtype, kernel=kernels.WENDLAND)
         self.warm = 0.5  # warm start: half the previous step's kappa (as SPlisHSPlasH does)
-        self.margin = 0.1 * self.spacing  # the box clamp is only a safety net: walls hold the fluid
+        self.margin = 0.1 * self.spacing  # the box mirror is only a safety net: walls hold the fluid
         self._kappa = self._kappa_v = None
         self._cache = None  # neighbours/densities/alpha of the current positions
 
     # ---- density and the DFSPH factor -------------------------------------------------------------
     def _neighbourhood(self, x):
-        h, V = self.h, self.V
+        h, V, K = self.h, self.V, self.kernel
         i, j = neighbor_pairs(x, h)
         bi, bb = neighbor_pairs(x, h, self.wall) if self.wall.numel() else (i[:0], j[:0])
         d = x[i] - x[j]
         r = d.norm(dim=-1)
-        gw = V * kernels.wendland_grad(d, r, h)                   # V gradW_ij
+        gw = V * K.grad(d, r, h)                    # V gradW_ij
         db = x[bi] - self.wall[bb]
-        gwb = V * kernels.wendland_grad(db, db.norm(dim=-1), h)   # V gradW_ib
+        gwb = V * K.grad(db, db.norm(dim=-1), h)    # V gradW_ib
         n = x.shape[0]
-        rho = torch.full((n,), V * kernels.wendland_zero(h), dtype=x.dtype, device=x.device)
-        rho.index_add_(0, i, V * kernels.wendland(r, h))
-        rho.index_add_(0, bi, V * kernels.wendland(db.norm(dim=-1), h))
+        rho = torch.full((n,), V * K.zero(h), dtype=x.dtype, device=x.device)
+        rho.index_add_(0, i, V * K.W(r, h))
+        rho.index_add_(0, bi, V * K.W(db.norm(dim=-1), h))
         gf = torch.zeros_like(x).index_add_(0, i, gw)
         gb = torch.zeros_like(x).index_add_(0, bi, gwb)
         s2 = torch.zeros(n, dtype=x.dtype, device=x.device).index_add_(0, i, (gw * gw).sum(-1))
@@ -107,7 +107,7 @@ class DFSPH(SolverBase):
         count = torch.bincount(i, minlength=n) + torch.bincount(bi, minlength=n)  # fluid + wall
         # wall pressure extrapolation weights (Adami et al. 2012)
         nw = self.wall.shape[0]
-        wb = kernels.wendland(db.norm(dim=-1), h)
+        wb = K.W(db.norm(dim=-1), h)
         wall_wsum = torch.zeros(nw, dtype=x.dtype, device=x.device).index_add_(0, bb, wb)
         wall_hydro = torch.zeros(nw, dtype=x.dtype, device=x.device).index_add_(0, bb, wb * ((-db) @ self.g))
         return dict(i=i, j=j, r=r, gw=gw, bi=bi, bb=bb, gwb=gwb, rho=rho, alpha=alpha, count=count,
