@@ -210,7 +210,7 @@ class SolverBase:
         # and 0.005 s (0.12) stay bounded. PBF with 4 iterations at dt 1/24 s reaches 1.1 sqrt(gH).
         gnorm = float(self.g.norm())
         self.dt_force = params.force_cfl * math.sqrt(self.spacing / gnorm) if gnorm > 0 else math.inf
-        self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(float(self.g.norm()), 1e-3) * domain.height) + 1.0
+        self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(gnorm, 1e-3) * domain.height) + 1.0
         self.measure = Measure(h=self.h, V=lattice_volume(kernel.W, self.h, self.spacing) * measure_scale,
                                wall=self.wall, gravity=self.g, z0=domain.lo[2], mass=self.mass,
                                kernel=kernel)
