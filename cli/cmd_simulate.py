@@ -20,6 +20,9 @@ def register(sub):
     p.add_argument("--particles", type=int, default=2000, help="approximate particle count (default 2000)")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the scene's, 60)")
     p.add_argument("--seconds", type=float, default=None, help="simulated time (default: the scene's)")
+    p.add_argument("--settle", type=float, default=None, metavar="S",
+                   help="seconds of damped settling before t = 0, from which the fluid starts at rest "
+                        "(default: the scene's; hydrostatic_tank 6, others 0)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -45,7 +48,8 @@ def run(args) -> int:
         bar.update(1)
 
     sim, res = simulate(args.scene, solver=args.solver, particles=args.particles, fps=args.fps,
-                        seconds=args.seconds, device=args.device, progress=progress)
+                        seconds=args.seconds, device=args.device, progress=progress,
+                        settle_seconds=args.settle)
     if bar:
         bar.close()
     write_sim(args.out, sim)

@@ -11,7 +11,7 @@ import torch
 
 from ..errors import InputError
 from ..io import SimData
-from .common import Domain, FrameResult, SimulationError, run_frames
+from .common import Domain, FrameResult, SimulationError, run_frames, settle
 from .dfsph import DFSPH, DFSPHParams
 from .pbf import PBF, PBFParams
 from .scenes import SCENES, initial_state, presets
@@ -63,15 +63,20 @@ def prepare_particles(x: np.ndarray, v: np.ndarray, domain: Domain, spacing: flo
 
 def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
              spacing: float | None = None, fps: float | None = None, seconds: float | None = None,
-             device: str = "cpu", progress=None, **overrides) -> tuple[SimData, FrameResult]:
-    """Run a preset scene and return (SimData for sim.h5, the per-step log)."""
+             device: str = "cpu", progress=None, settle_seconds: float | None = None,
+             **overrides) -> tuple[SimData, FrameResult]:
+    """Run a preset scene and return (SimData for sim.h5, the per-step log). ``settle_seconds``
+    (default: the scene's, ``Scene.settle``) of damped settling run before t = 0."""
     sc, x, v, radius = initial_state(scene, particles=particles, spacing=spacing)
     fps = sc.fps if fps is None else fps
     seconds = sc.seconds if seconds is None else seconds
+    settle_seconds = sc.settle if settle_seconds is None else settle_seconds
     s = make_solver(solver, radius, sc.domain, sc.material_params, device=device, **overrides)
     x, v, report = prepare_particles(x, v, sc.domain, 2 * radius)
     xt = torch.tensor(x, dtype=torch.float32, device=device)
     vt = torch.tensor(v, dtype=torch.float32, device=device)
+    if settle_seconds:
+        report.update(settle(s, xt, vt, seconds=settle_seconds))
     res = run_frames(s, xt, vt, fps=fps, seconds=seconds, progress=progress)
     cfg = {"scene": scene, "solver": solver, "spacing": 2 * radius, "device": device,
            "material": sc.material, **{k: v for k, v in overrides.items()}, **report,
@@ -85,4 +90,5 @@ def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
 
 
 __all__ = ["simulate", "make_solver", "prepare_particles", "DFSPH", "DFSPHParams", "PBF", "PBFParams",
-           "Domain", "SimulationError", "SCENES", "SOLVERS", "presets", "initial_state", "run_frames"]
+           "Domain", "SimulationError", "SCENES", "SOLVERS", "presets", "initial_state", "run_frames",
+           "settle"]

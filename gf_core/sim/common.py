@@ -215,6 +215,9 @@ class SolverBase:
                                wall=self.wall, gravity=self.g, z0=domain.lo[2], mass=self.mass,
                                kernel=kernel)
 
+    def reset(self):
+        """Forget what the solver carries from step to step (warm starts); called after ``settle``."""
+
 
 @dataclass
 class FrameResult:
@@ -222,6 +225,40 @@ class FrameResult:
     velocities: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
     steps: list = field(default_factory=list)  # per-step log: t, wall_s, dt, iterations, errors
+
+
+def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping: float = 0.05,
+           jitter: float = 0.05, seed: int = 0) -> dict:
+    """Bring a fluid to rest in its container before t = 0, in place: the lattice positions are
+    jittered by up to ``jitter`` spacings (a lattice's free surface is an unstable equilibrium,
+    which would otherwise give way only when round-off has grown, in the middle of the run), then
+    the solver runs for ``seconds`` with the velocities damped by a factor (1 - damping) after
+    every step, and finally the velocities and the solver's warm starts are reset. A lattice is
+    not the packing a fluid at rest has: without settling, the hydrostatic tank's top layer
+    collapses 0.5 s into the run and its fastest particle is still at 1-2% of sqrt(gH) after 2 s.
+    Returns a log: steps, wall seconds, the fastest particle before the reset."""
+    if not (math.isfinite(seconds) and seconds >= 0):
+        raise InputError("settle", f"seconds must be >= 0, got {seconds}")
+    if not 0 < damping < 1:
+        raise InputError("settle", f"damping must be in (0, 1), got {damping}")
+    wall0 = time.perf_counter()
+    if jitter and x.shape[0]:
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        shift = (torch.rand(x.shape, generator=gen, dtype=torch.float64) * 2 - 1) * (jitter * solver.spacing)
+        x.add_(shift.to(device=x.device, dtype=x.dtype))
+        enforce_box(x, v, solver.domain, 0.0)
+    t, steps = 0.0, 0
+    while t < seconds - 1e-12:
+        info = solver.step(x, v, seconds - t)
+        v.mul_(1.0 - damping)
+        t += info["dt"]
+        steps += 1
+        check_finite(steps, t, positions=x, velocities=v)
+    speed = float(v.norm(dim=-1).max()) if x.shape[0] else 0.0
+    v.zero_()
+    solver.reset()
+    return {"settle_seconds": seconds, "settle_steps": steps, "settle_final_speed": speed,
+            "settle_wall_s": time.perf_counter() - wall0}
 
 
 def run_frames(solver, x: torch.Tensor, v: torch.Tensor, *, fps: float, seconds: float,

@@ -82,6 +82,9 @@ class DFSPH(SolverBase):
         self._kappa = self._kappa_v = None
         self._cache = None  # neighbours/densities/alpha of the current positions
 
+    def reset(self):
+        self._kappa = self._kappa_v = None
+
     # ---- density and the DFSPH factor -------------------------------------------------------------
     def _neighbourhood(self, x):
         h, V, K = self.h, self.V, self.kernel
