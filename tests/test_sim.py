@@ -88,6 +88,7 @@ def test_settle_brings_a_lattice_to_rest_and_resets_velocities():
     xt, vt = torch.tensor(x), torch.tensor(v)
     log = settle(s, xt, vt, seconds=0.5)
     assert log["settle_steps"] > 0 and log["settle_final_speed"] > 0
+    assert 0 <= log["settle_density_err_mean"] < 1e-3
     assert float(vt.abs().max()) == 0.0 and s._kappa is None
     assert float((xt - torch.tensor(x)).norm(dim=1).max()) > 0.05 * 2 * r
     with pytest.raises(InputError):

@@ -236,7 +236,8 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
     every step, and finally the velocities and the solver's warm starts are reset. A lattice is
     not the packing a fluid at rest has: without settling, the hydrostatic tank's top layer
     collapses 0.5 s into the run and its fastest particle is still at 1-2% of sqrt(gH) after 2 s.
-    Returns a log: steps, wall seconds, the fastest particle before the reset."""
+    Returns a log: steps, wall seconds, the fastest particle before the reset and the mean density
+    error of the settled state."""
     if not (math.isfinite(seconds) and seconds >= 0):
         raise InputError("settle", f"seconds must be >= 0, got {seconds}")
     if not 0 < damping < 1:
@@ -258,6 +259,7 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
     v.zero_()
     solver.reset()
     return {"settle_seconds": seconds, "settle_steps": steps, "settle_final_speed": speed,
+            "settle_density_err_mean": solver.measure(x, v)["density_err_mean"],
             "settle_wall_s": time.perf_counter() - wall0}
 
 
