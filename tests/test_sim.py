@@ -67,7 +67,8 @@ def test_dfsph_hydrostatic_tank_stays_at_rest():
     scene settles for 6 s before t = 0 (``Scene.settle``); measured over seven jittered settles
     (BENCHMARKS.md, "Hydrostatic tank"): density error 0.010 %, fastest particle at 2 s
     0.15-0.69 %, at most 1.8 % over [1, 2] s. From the bare lattice, without
-    settling: 0.7-2.2 % at 2 s (median 1.15 %)."""
+    settling: 0.7-2.2 % at 2 s (median 1.15 %). Not asserted because not met: staying at rest
+    beyond 2 s (the fastest particle grows again from 2.5 s, to 2.7-3.2 % at 4 s)."""
     sim, res = simulate("hydrostatic_tank", solver="dfsph", particles=2000, fps=10, seconds=2.0)
     assert sim.config["settle_seconds"] == 6.0
     assert sim.stats["density_err_mean"][-1] < 5e-4
