@@ -9,11 +9,11 @@ import torch
 from gf_core.errors import InputError
 from gf_core.io import read_sim
 from gf_core.neighbors import knn, neighbor_pairs
-from gf_core.sim import (DFSPH, PBF, SCENES, DFSPHParams, initial_state, make_solver, run_frames, settle,
-                         simulate)
+from gf_core.sim import (DFSPH, PBF, SCENES, DFSPHParams, initial_state, make_solver, prepare_particles,
+                         run_frames, settle, simulate)
 from gf_core.sim import kernels
 from gf_core.sim.common import Domain, lattice_volume
-from gf_core.sim.stability import CASES, run_case
+from gf_core.sim.stability import CASES, run_case, setup_case
 
 G = 9.81
 
@@ -64,21 +64,38 @@ def test_lattice_interior_at_rest_density(solver):
 
 def test_dfsph_hydrostatic_tank_stays_at_rest():
     """Issue targets: mean density error < 0.1 % and max speed < 1 % of sqrt(gH) after 2 s. The
-    scene settles for 6 s before t = 0 (``Scene.settle``); measured over seven jittered settles
-    (BENCHMARKS.md, "Hydrostatic tank"): density error 0.010 %, fastest particle at 2 s
-    0.15-0.69 %, at most 1.8 % over [1, 2] s. From the bare lattice, without
-    settling: 0.7-2.2 % at 2 s (median 1.15 %). Not asserted because not met: staying at rest
-    beyond 2 s (the fastest particle grows again from 2.5 s, to 2.7-3.2 % at 4 s)."""
+    scene settles for 6 s before t = 0 (``Scene.settle``). Measured over seven settles (seeds
+    0-6, run to 5 s; BENCHMARKS.md, "Hydrostatic tank", item 8): density error 0.006 %, the
+    fastest particle at most 0.31-0.65 % over the whole run (0.31-0.55 % over [2, 5] s), total
+    energy never more than 4e-6 J above its start (it falls: the pressure solve is a projection,
+    walls included).
+    The run to 5 s: ``test_dfsph_hydrostatic_tank_stays_at_rest_to_5s`` (slow)."""
     sim, res = simulate("hydrostatic_tank", solver="dfsph", particles=2000, fps=10, seconds=2.0)
+    _assert_tank_at_rest(sim, res)
+
+
+def _assert_tank_at_rest(sim, res):
     assert sim.config["settle_seconds"] == 6.0
-    assert sim.stats["density_err_mean"][-1] < 5e-4
     assert max(s["density_err_mean"] for s in res.steps) < 5e-4
+    assert all(s["jacobi_halvings"] == 0 for s in res.steps)  # the safeguard leaves this alone
     ref = math.sqrt(G * 0.2)
-    speed = np.linalg.norm(sim.velocities, axis=2)
-    assert speed[0].max() == 0.0
-    assert speed[-1].max() < 0.01 * ref
-    assert speed[sim.times >= 1.0].max() < 0.03 * ref
+    speed = np.linalg.norm(sim.velocities, axis=2).max(axis=1)
+    assert speed[0] == 0.0
+    assert speed.max() < 0.01 * ref, speed / ref
+    energy = sim.stats["kinetic"] + sim.stats["potential"]
+    assert energy.max() - energy[0] < 1e-5, energy - energy[0]  # J; 1e-5 J ~ all moving at 0.1 %
     assert np.all(sim.positions[-1] >= 0) and np.all(sim.positions[-1][:, :2] <= 0.2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 4])
+def test_dfsph_hydrostatic_tank_stays_at_rest_to_5s(seed):
+    """The same to 5 s, for two settles (about 6 minutes each on one core). With walls whose
+    pressure was extrapolated from the fluid (Adami et al. 2012) the fastest particle grew again
+    after 2.5 s, to 2.7 % (seed 0) and 3.2 % (seed 4) at 4 s."""
+    sim, res = simulate("hydrostatic_tank", solver="dfsph", particles=2000, fps=10, seconds=5.0,
+                        settle_seed=seed)
+    _assert_tank_at_rest(sim, res)
 
 
 def test_settle_brings_a_lattice_to_rest_and_resets_velocities():
@@ -101,15 +118,17 @@ def test_settle_brings_a_lattice_to_rest_and_resets_velocities():
 
 def test_dfsph_closed_tank_lattice_is_stable():
     """A tank filled to the lid (no free surface), walls continuing the fluid lattice: with the
-    Wendland kernel the lattice stays at rest under hydrostatic pressure (measured: max speed
-    0.1-0.2 % of sqrt(gH) over 1 s); with the cubic spline the same lattice is unstable and its
-    speed grows ten-fold per 0.1 s up to 7 % (BENCHMARKS.md)."""
+    Wendland kernel the lattice stays at rest under hydrostatic pressure; with the cubic spline
+    the same lattice is unstable and its speed grows ten-fold per 0.1 s up to 7 % by 0.4 s
+    (BENCHMARKS.md). Measured with wall pressure unknowns (% of sqrt(gH)): a 0.9 % peak at 0.3 s
+    (the density solve at its 100-iteration cap: a closed box has no free surface to relieve it),
+    0.3 % at 0.5 s, 0.1 % at 1 s."""
     sc, x, v, r = initial_state("hydrostatic_tank", particles=2000)
     s = DFSPH(DFSPHParams(particle_radius=r, xsph=0.05), Domain((0, 0, 0), (0.2, 0.2, 0.2)))
     xt, vt = torch.tensor(x), torch.tensor(v)
     res = run_frames(s, xt, vt, fps=10, seconds=0.6, measure_every_step=False)
-    speed = max(np.linalg.norm(q, axis=1).max() for q in res.velocities)
-    assert speed < 0.005 * math.sqrt(G * 0.2)
+    speed = np.array([np.linalg.norm(q, axis=1).max() for q in res.velocities]) / math.sqrt(G * 0.2)
+    assert speed.max() < 0.015 and speed[-1] < 0.006, speed
 
 
 # Martin & Moyce (1952), n^2 = 2: surge front Z = x/a against T = t sqrt(2 g / a)
@@ -139,7 +158,8 @@ def test_falling_sphere_energy_does_not_grow():
 
 
 def test_honey_is_more_viscous_than_water():
-    """Same cone, water vs honey: honey spreads less in the same time (implicit viscosity)."""
+    """Same cone, water vs honey: honey spreads less in the same time (implicit viscosity).
+    Measured, farthest particle at 0.6 s: honey 0.29 m, water 0.55 m."""
     def spread(material_override):
         sc, x, v, r = initial_state("honey_cone", particles=1200)
         params = dict(sc.material_params, **material_override)
@@ -167,6 +187,21 @@ def test_pbf_from_arbitrary_positions_estimates_rest_state():
     assert torch.isfinite(xt).all() and float(xt[:, 2].min()) >= 0.0
     with pytest.raises(InputError, match="need"):
         PBF.from_positions(np.zeros((1, 3)), sc.domain)
+
+
+def test_dfsph_jacobi_backs_off_instead_of_diverging():
+    """Half a dam-break column mirrored into the box crushes particles together (densities up to
+    18x rest): plain Jacobi grew the error 20-fold per iteration to NaN in the first step. The
+    solve now halves its relaxation after an update that more than doubles the error."""
+    sc, x, v, r, _ = setup_case("outside_box", "dfsph", 400)
+    s = make_solver("dfsph", r, sc.domain, sc.material_params)
+    x, v, _ = prepare_particles(x, v, sc.domain, 2 * r)
+    xt, vt = torch.tensor(x, dtype=torch.float32), torch.tensor(v, dtype=torch.float32)
+    before = s.measure(xt, vt)["density_err_mean"]
+    info = s.step(xt, vt, 0.005)
+    assert info["jacobi_halvings"] > 0
+    assert torch.isfinite(xt).all() and torch.isfinite(vt).all()
+    assert s.measure(xt, vt)["density_err_mean"] < 0.8 * before  # 8.2 -> 5.6; the run: test_stability_suite
 
 
 @pytest.mark.parametrize("case", CASES)

@@ -64,9 +64,10 @@ def prepare_particles(x: np.ndarray, v: np.ndarray, domain: Domain, spacing: flo
 def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
              spacing: float | None = None, fps: float | None = None, seconds: float | None = None,
              device: str = "cpu", progress=None, settle_seconds: float | None = None,
-             **overrides) -> tuple[SimData, FrameResult]:
+             settle_seed: int = 0, **overrides) -> tuple[SimData, FrameResult]:
     """Run a preset scene and return (SimData for sim.h5, the per-step log). ``settle_seconds``
-    (default: the scene's, ``Scene.settle``) of damped settling run before t = 0."""
+    (default: the scene's, ``Scene.settle``) of damped settling run before t = 0, from the start
+    lattice jittered with ``settle_seed``."""
     sc, x, v, radius = initial_state(scene, particles=particles, spacing=spacing)
     fps = sc.fps if fps is None else fps
     seconds = sc.seconds if seconds is None else seconds
@@ -76,7 +77,7 @@ def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
     xt = torch.tensor(x, dtype=torch.float32, device=device)
     vt = torch.tensor(v, dtype=torch.float32, device=device)
     if settle_seconds:
-        report.update(settle(s, xt, vt, seconds=settle_seconds))
+        report.update(settle(s, xt, vt, seconds=settle_seconds, seed=settle_seed), settle_seed=settle_seed)
     res = run_frames(s, xt, vt, fps=fps, seconds=seconds, progress=progress)
     cfg = {"scene": scene, "solver": solver, "spacing": 2 * radius, "device": device,
            "material": sc.material, **{k: v for k, v in overrides.items()}, **report,

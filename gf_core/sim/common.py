@@ -232,10 +232,13 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
     """Bring a fluid to rest in its container before t = 0, in place: the lattice positions are
     jittered by up to ``jitter`` spacings (a lattice's free surface is an unstable equilibrium,
     which would otherwise give way only when round-off has grown, in the middle of the run), then
-    the solver runs for ``seconds`` with the velocities damped by a factor (1 - damping) after
-    every step, and finally the velocities and the solver's warm starts are reset. A lattice is
-    not the packing a fluid at rest has: without settling, the hydrostatic tank's top layer
-    collapses 0.5 s into the run and its fastest particle is still at 1-2% of sqrt(gH) after 2 s.
+    the solver runs for ``seconds`` with the velocities damped after every step by a factor
+    (1 - damping (1 - t / seconds)), annealed to no damping at the end, and finally the velocities
+    and the solver's warm starts are reset. A lattice is not the packing a fluid at rest has:
+    without settling, the hydrostatic tank's top layer collapses 0.5 s into the run and its fastest
+    particle is still at 1-2% of sqrt(gH) after 2 s. The annealing matters: a state held by
+    constant damping is not an equilibrium of the undamped solver, and released it moved again
+    (the tank: 3.4% of sqrt(gH) 0.2 s after a constant-damping settle, 0.6% after an annealed one).
     Returns a log: steps, wall seconds, the fastest particle before the reset and the mean density
     error of the settled state."""
     if not (math.isfinite(seconds) and seconds >= 0):
@@ -251,8 +254,8 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
     t, steps = 0.0, 0
     while t < seconds - 1e-12:
         info = solver.step(x, v, seconds - t)
-        v.mul_(1.0 - damping)
         t += info["dt"]
+        v.mul_(1.0 - damping * max(1.0 - t / seconds, 0.0))
         steps += 1
         check_finite(steps, t, positions=x, velocities=v)
     speed = float(v.norm(dim=-1).max()) if x.shape[0] else 0.0

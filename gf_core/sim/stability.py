@@ -17,7 +17,8 @@ CASES = ("hydrostatic", "large_dt", "large_dt_at_rest", "high_viscosity", "stiff
          "outside_box", "one_particle", "zero_particles")
 
 
-def _setup(case: str, solver: str, particles: int):
+def setup_case(case: str, solver: str, particles: int):
+    """The start of one case: (scene, positions, velocities, particle radius, solver overrides)."""
     overrides: dict = {}
     scene = "dam_break"
     if case == "hydrostatic":
@@ -58,7 +59,7 @@ def run_case(case: str, solver: str, *, particles: int = 600, seconds: float = 0
     box, or refused up front with a clear error (``refused``)."""
     if case not in CASES:
         raise ValueError(f"unknown stability case {case!r}; choose from {', '.join(CASES)}")
-    sc, x, v, radius, overrides = _setup(case, solver, particles)
+    sc, x, v, radius, overrides = setup_case(case, solver, particles)
     rec = {"case": case, "solver": solver, "scene": sc.name, "particles": int(x.shape[0]),
            "overrides": overrides}
     t0 = time.perf_counter()
