@@ -121,8 +121,8 @@ def test_dfsph_closed_tank_lattice_is_stable():
     Wendland kernel the lattice stays at rest under hydrostatic pressure; with the cubic spline
     the same lattice is unstable and its speed grows ten-fold per 0.1 s up to 7 % by 0.4 s
     (BENCHMARKS.md). Measured with wall pressure unknowns (% of sqrt(gH)): a 0.9 % peak at 0.3 s
-    (the density solve at its 100-iteration cap: a closed box has no free surface to relieve it),
-    0.3 % at 0.5 s, 0.1 % at 1 s."""
+    (the density solve runs at its 100-iteration cap in this closed box), 0.3 % at 0.5 s, 0.1 %
+    at 1 s."""
     sc, x, v, r = initial_state("hydrostatic_tank", particles=2000)
     s = DFSPH(DFSPHParams(particle_radius=r, xsph=0.05), Domain((0, 0, 0), (0.2, 0.2, 0.2)))
     xt, vt = torch.tensor(x), torch.tensor(v)
