@@ -65,9 +65,10 @@ def test_lattice_interior_at_rest_density(solver):
 def test_dfsph_hydrostatic_tank_stays_at_rest():
     """Issue targets: mean density error < 0.1 % and max speed < 1 % of sqrt(gH) after 2 s. The
     scene settles for 6 s before t = 0 (``Scene.settle``). Measured over seven settles (seeds
-    0-6, run to 5 s; BENCHMARKS.md, "Hydrostatic tank", item 8): density error 0.006 %, the
-    fastest particle at most 0.31-0.65 % over the whole run (0.31-0.55 % over [2, 5] s), total
-    energy never more than 4e-6 J above its start (it falls: the pressure solve is a projection,
+    0-6, run to 5 s; BENCHMARKS.md, "Hydrostatic tank", item 8): density error < 0.01 %, the
+    fastest particle at most 0.09-0.50 % over [2, 5] s and at most 0.50 % from 0.8 s on; over the
+    whole run 0.23-0.50 %, except one settle (seed 2) that released a 2.8 % bump at 0.3 s; total
+    energy never more than 3e-6 J above its start (it falls: the pressure solve is a projection,
     walls included).
     The run to 5 s: ``test_dfsph_hydrostatic_tank_stays_at_rest_to_5s`` (slow)."""
     sim, res = simulate("hydrostatic_tank", solver="dfsph", particles=2000, fps=10, seconds=2.0)
@@ -81,7 +82,8 @@ def _assert_tank_at_rest(sim, res):
     ref = math.sqrt(G * 0.2)
     speed = np.linalg.norm(sim.velocities, axis=2).max(axis=1)
     assert speed[0] == 0.0
-    assert speed.max() < 0.01 * ref, speed / ref
+    assert speed.max() < 0.03 * ref, speed / ref  # a settle can leave a release bump early on
+    assert speed[sim.times >= 1.0].max() < 0.01 * ref, speed / ref
     energy = sim.stats["kinetic"] + sim.stats["potential"]
     assert energy.max() - energy[0] < 1e-5, energy - energy[0]  # J; 1e-5 J ~ all moving at 0.1 %
     assert np.all(sim.positions[-1] >= 0) and np.all(sim.positions[-1][:, :2] <= 0.2)
@@ -120,9 +122,8 @@ def test_dfsph_closed_tank_lattice_is_stable():
     """A tank filled to the lid (no free surface), walls continuing the fluid lattice: with the
     Wendland kernel the lattice stays at rest under hydrostatic pressure; with the cubic spline
     the same lattice is unstable and its speed grows ten-fold per 0.1 s up to 7 % by 0.4 s
-    (BENCHMARKS.md). Measured with wall pressure unknowns (% of sqrt(gH)): a 0.9 % peak at 0.3 s
-    (the density solve runs at its 100-iteration cap in this closed box), 0.3 % at 0.5 s, 0.1 %
-    at 1 s."""
+    (BENCHMARKS.md). Measured with wall pressure unknowns (% of sqrt(gH)): a 0.75 % peak at 0.3 s,
+    0.26 % at 0.5 s, 0.08 % at 1 s."""
     sc, x, v, r = initial_state("hydrostatic_tank", particles=2000)
     s = DFSPH(DFSPHParams(particle_radius=r, xsph=0.05), Domain((0, 0, 0), (0.2, 0.2, 0.2)))
     xt, vt = torch.tensor(x), torch.tensor(v)
