@@ -92,7 +92,7 @@ def _assert_tank_at_rest(sim, res):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 4])
 def test_dfsph_hydrostatic_tank_stays_at_rest_to_5s(seed):
-    """The same to 5 s, for two settles (about 6 minutes each on one core). With walls whose
+    """The same to 5 s, for two settles (about 4 minutes each on one core). With walls whose
     pressure was extrapolated from the fluid (Adami et al. 2012) the fastest particle grew again
     after 2.5 s, to 2.7 % (seed 0) and 3.2 % (seed 4) at 4 s."""
     sim, res = simulate("hydrostatic_tank", solver="dfsph", particles=2000, fps=10, seconds=5.0,
