@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[blender,test]'
+	$(PY) -m pip install --quiet -e '.[blender,test,cuda-build]'
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -20,10 +20,10 @@ demo: $(STAMP)
 	$(VENV)/bin/gf-cli demo --out demo_out
 
 test: $(STAMP)
-	$(PY) -m pytest -q -ra
+	GF_REQUIRE_NATIVE=1 $(PY) -m pytest -q -ra
 
 test-all: $(STAMP)
-	$(PY) -m pytest -q -ra -m ''
+	GF_REQUIRE_NATIVE=1 $(PY) -m pytest -q -ra -m ''
 
 clean:
-	rm -rf $(VENV) demo_out
+	rm -rf $(VENV) demo_out $${GF_EXT_DIR:-$$HOME/.cache/gaussfluids}

@@ -6,8 +6,38 @@ import json
 from pathlib import Path
 
 
-def _ints(s: str) -> list[int]:
-    return [int(float(x)) for x in s.split(",") if x]
+def _ints(s: str, flag: str = "--particles", minimum: int = 1) -> list[int]:
+    """A comma-separated list of positive integers; errors name the option."""
+    from gf_core.errors import InputError
+
+    out = []
+    for x in s.split(","):
+        x = x.strip()
+        if not x:
+            continue
+        try:
+            v = float(x)
+        except ValueError:
+            raise InputError(flag, f"{x!r} is not a number (expected a comma-separated list like 1000,20000)") from None
+        if v != int(v) or v < minimum:
+            raise InputError(flag, f"values must be integers >= {minimum}, got {x}")
+        out.append(int(v))
+    if not out:
+        raise InputError(flag, "needs at least one value")
+    return out
+
+
+def _check_common(args, out_is_file: bool = True) -> None:
+    from gf_core.errors import InputError
+
+    from .cmd_simulate import check_out_file
+
+    if getattr(args, "repeats", 1) < 1:
+        raise InputError("--repeats", f"must be >= 1, got {args.repeats}")
+    if out_is_file:
+        check_out_file(args.out)
+    elif args.out.exists() and not args.out.is_dir():
+        raise InputError(args.out, "--out must be a folder, and this is a file")
 
 
 def register(sub):
@@ -19,14 +49,16 @@ def register(sub):
                         description="Times forward and forward+backward of each renderer backend "
                                     "(median of repeats) and reports the max difference between "
                                     "backends. The scene is documented in gf_core/bench/render_bench.py.")
-    r.add_argument("--backends", default="native,reference")
-    r.add_argument("--particles", default="1000,20000,50000,200000")
-    r.add_argument("--resolutions", default="128,256,400,800")
-    r.add_argument("--repeats", type=int, default=5)
-    r.add_argument("--device", default="cpu")
+    r.add_argument("--backends", default="native,reference", help="comma-separated (default native,reference)")
+    r.add_argument("--particles", default="1000,20000,50000,200000",
+                   help="comma-separated particle counts (default 1000,20000,50000,200000)")
+    r.add_argument("--resolutions", default="128,256,400,800",
+                   help="comma-separated image sizes (default 128,256,400,800)")
+    r.add_argument("--repeats", type=int, default=5, help="timed repeats, median reported (default 5)")
+    r.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     r.add_argument("--reference-max-work", type=float, default=1.2e10,
                    help="skip the reference backend above particles x pixels (default 1.2e10)")
-    r.add_argument("--out", type=Path, default=Path("bench_render.json"))
+    r.add_argument("--out", type=Path, default=Path("bench_render.json"), help="JSON output (default bench_render.json)")
     r.set_defaults(func=run_render)
     q = bsub.add_parser("sim", help="simulators: error vs run time over accuracy sweeps; stability suite",
                         description="Runs DFSPH and PBF over a sweep of accuracy settings (CFL factor "
@@ -34,14 +66,24 @@ def register(sub):
                                     "the density error itself after every step, energy and wall time, "
                                     "and writes JSON and a PNG of error vs seconds. --stability also runs "
                                     "the stability suite.")
-    q.add_argument("--solvers", default="dfsph,pbf")
-    q.add_argument("--particles", default="1000,4000")
-    q.add_argument("--scene", default="dam_break")
-    q.add_argument("--seconds", type=float, default=0.5)
-    q.add_argument("--device", default="cpu")
+    q.add_argument("--solvers", default="dfsph,pbf", help="comma-separated (default dfsph,pbf)")
+    q.add_argument("--particles", default="1000,4000", help="comma-separated particle counts (default 1000,4000)")
+    q.add_argument("--scene", default="dam_break", help="scene preset (default dam_break)")
+    q.add_argument("--seconds", type=float, default=0.5, help="simulated seconds per run (default 0.5)")
+    q.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     q.add_argument("--stability", action="store_true", help="also run the stability suite")
     q.add_argument("--out", type=Path, default=Path("bench_sim"), help="output folder (JSON + PNG)")
     q.set_defaults(func=run_sim)
+    g = bsub.add_parser("gpu", help="CUDA figures: renderer fwd+bwd (vs gsplat if installed), K-nearest SPH density",
+                        description="Times the CUDA renderer's forward+backward on the bench-render scene (and "
+                                    "gsplat's rasterization on the same particles when gsplat is importable), and "
+                                    "the K-nearest SPH density with its gradient. Needs a CUDA GPU.")
+    g.add_argument("--particles", type=int, default=50000, help="particles (default 50000)")
+    g.add_argument("--resolution", type=int, default=400, help="image width and height (default 400)")
+    g.add_argument("--k", type=int, default=64, help="neighbours for the density (default 64)")
+    g.add_argument("--repeats", type=int, default=50, help="timed repeats, median reported (default 50)")
+    g.add_argument("--out", type=Path, default=Path("bench_gpu.json"), help="JSON output (default bench_gpu.json)")
+    g.set_defaults(func=run_gpu)
 
 
 def run_render(args) -> int:
@@ -49,11 +91,26 @@ def run_render(args) -> int:
     from gf_core.bench.render_bench import bench_render
     from gf_core.io import atomic_write_text
 
+    from gf_core.errors import InputError
+
+    from .cmd_reconstruct import check_device
+
     backends = [b for b in args.backends.split(",") if b]
     for b in backends:
         if b not in ("native", "reference"):
-            raise SystemExit(f"gf-cli bench render: unknown backend {b!r} (native, reference)")
-    recs = bench_render(backends, _ints(args.particles), _ints(args.resolutions), repeats=args.repeats,
+            raise InputError("--backends", f"unknown backend {b!r} (native, reference)")
+    counts, resolutions = _ints(args.particles), _ints(args.resolutions, "--resolutions", 8)
+    _check_common(args)
+    check_device(args.device)
+    need = max(counts) * 4 * 60 + max(resolutions) ** 2 * 4 * 40  # parameters, grads, images: bytes
+    if args.device == "cpu":
+        import os
+
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        if need > 0.8 * avail:
+            raise InputError("--particles", f"{max(counts)} particles at {max(resolutions)}^2 need about "
+                                            f"{need / 2**30:.1f} GiB; {avail / 2**30:.1f} GiB are free")
+    recs = bench_render(backends, counts, resolutions, repeats=args.repeats,
                         device=args.device, reference_max_work=args.reference_max_work)
     info = machine()
     print()
@@ -73,12 +130,21 @@ def run_sim(args) -> int:
     from gf_core.bench.sim_bench import bench_sim, plot
     from gf_core.io import atomic_write_text
 
+    from gf_core.errors import InputError
+
+    from .cmd_reconstruct import check_device
+
     solvers = [s for s in args.solvers.split(",") if s]
     for s in solvers:
         if s not in ("dfsph", "pbf"):
-            raise SystemExit(f"gf-cli bench sim: unknown solver {s!r} (dfsph, pbf)")
+            raise InputError("--solvers", f"unknown solver {s!r} (dfsph, pbf)")
+    counts = _ints(args.particles)
+    if not args.seconds > 0:
+        raise InputError("--seconds", f"must be a positive number, got {args.seconds}")
+    check_device(args.device)
+    _check_common(args, out_is_file=False)
     args.out.mkdir(parents=True, exist_ok=True)
-    recs, traces = bench_sim(solvers, _ints(args.particles), scene=args.scene, seconds=args.seconds,
+    recs, traces = bench_sim(solvers, counts, scene=args.scene, seconds=args.seconds,
                              device=args.device)
     print()
     print(table(recs, [("solver", "solver", "s"), ("setting", "setting", "s"), ("particles", "N", "d"),
@@ -101,4 +167,24 @@ def run_sim(args) -> int:
     plot(recs, traces, args.out / "error_vs_time.png")
     atomic_write_text(args.out / "bench_sim.json", __import__("json").dumps(out, indent=1))
     print(f"\nwrote {args.out / 'bench_sim.json'} and {args.out / 'error_vs_time.png'}")
+    return 0
+
+
+def run_gpu(args) -> int:
+    import torch
+
+    from gf_core.bench.common import machine
+    from gf_core.bench.gpu_bench import bench_density, bench_renderer
+    from gf_core.errors import InputError
+    from gf_core.io import atomic_write_text
+
+    if not torch.cuda.is_available():
+        raise InputError("gf-cli bench gpu", "needs a CUDA GPU, and torch sees none")
+    for name in ("particles", "resolution", "k", "repeats"):
+        if getattr(args, name) < 1:
+            raise InputError(f"--{name}", f"must be >= 1, got {getattr(args, name)}")
+    rec = {"machine": machine(), "renderer": bench_renderer(args.particles, args.resolution, args.repeats),
+           "density": bench_density(args.particles, args.k, args.repeats)}
+    atomic_write_text(args.out, json.dumps(rec, indent=1))
+    print(f"wrote {args.out}")
     return 0

@@ -25,20 +25,23 @@ def register(sub):
                                    "(CPU), plus transforms_{train,test}.json, a copy of the particles and a "
                                    "manifest. Uses a blender binary when given or on PATH, otherwise the bpy "
                                    "module. Resumable: re-running skips frames already rendered.")
-    p.add_argument("sim", type=Path)
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--views", type=int, default=5)
-    p.add_argument("--test-views", type=int, default=0)
-    p.add_argument("--resolution", type=int, default=400)
-    p.add_argument("--samples", type=int, default=32)
-    p.add_argument("--denoise", action="store_true")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--frames", default=":", help="START:END:STEP over the simulation's frames")
-    p.add_argument("--material", default="auto", choices=["auto", "water", "honey", "smoke"])
-    p.add_argument("--fov", type=float, default=40.0)
-    p.add_argument("--show-container", action="store_true")
-    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("sim", type=Path, help="the simulation (sim.h5)")
+    p.add_argument("--out", type=Path, required=True, help="dataset folder")
+    p.add_argument("--views", type=int, default=5, help="training cameras on a frontal arc (default 5)")
+    p.add_argument("--test-views", type=int, default=0, help="held-out cameras between them (default 0)")
+    p.add_argument("--resolution", type=int, default=400, help="image width and height in pixels (default 400)")
+    p.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel (default 32)")
+    p.add_argument("--denoise", action="store_true", help="denoise (needs a Blender with OpenImageDenoise; default off)")
+    p.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
+    p.add_argument("--frames", default=":", help="START:END:STEP over the simulation's frames (default: all)")
+    p.add_argument("--material", default="auto", choices=["auto", "water", "honey", "smoke"],
+                   help="fluid material (default auto: honey for honey scenes, else water)")
+    p.add_argument("--fov", type=float, default=40.0, help="horizontal field of view in degrees (default 40)")
+    p.add_argument("--show-container", action="store_true", help="let cameras see the tank (default off)")
+    p.add_argument("--threads", type=int, default=0, help="render threads (default 0: all)")
     p.add_argument("--blender", type=Path, default=None, help="a blender executable (default: PATH, else bpy)")
+    p.add_argument("--force", action="store_true",
+                   help="start afresh when OUT holds a dataset of another simulation or other options (default: refuse)")
     p.set_defaults(func=run)
 
 
@@ -60,6 +63,8 @@ def build_command(args) -> tuple[list[str], str]:
         opts.append("--denoise")
     if args.show_container:
         opts.append("--show-container")
+    if getattr(args, "force", False):
+        opts.append("--force")
     blender = args.blender or (Path(shutil.which("blender")) if shutil.which("blender") else None)
     if blender is not None:
         if not Path(blender).exists():
@@ -72,9 +77,11 @@ def build_command(args) -> tuple[list[str], str]:
                  particle_radius=sim.particle_radius, domain_min=np.asarray(sim.domain_min),
                  domain_max=np.asarray(sim.domain_max), scene=sim.scene, rest_density=sim.rest_density,
                  gt_file="gt_sim.h5")
-        shutil.copyfile(args.sim, args.out / "gt_sim.h5")
+        import hashlib
+
+        digest = hashlib.sha256(Path(args.sim).read_bytes()).hexdigest()
         cmd = [str(blender), "-b", "--factory-startup", "-noaudio", "-P", str(script_path()), "--",
-               "--sim", str(npz), "--out", str(args.out)] + opts
+               "--sim", str(npz), "--out", str(args.out), "--source-hash", digest] + opts
         return cmd, "blender"
     if importlib.util.find_spec("bpy") is None:
         raise GFError("render-dataset needs Blender: give --blender PATH, put `blender` on PATH, or "
@@ -83,16 +90,89 @@ def build_command(args) -> tuple[list[str], str]:
     return cmd, "bpy"
 
 
+def parse_frames(spec: str) -> slice:
+    """START:END:STEP (python slice syntax, integers: "5" is the first five) -> slice; errors name --frames."""
+    parts = spec.split(":")
+    if len(parts) not in (1, 2, 3):
+        raise InputError("--frames", f"must be START:END:STEP, got {spec!r}")
+    vals = []
+    for p in parts:
+        p = p.strip()
+        if p == "":
+            vals.append(None)
+            continue
+        try:
+            vals.append(int(p))
+        except ValueError:
+            raise InputError("--frames", f"{p!r} is not an integer (in {spec!r}; expected START:END:STEP)") from None
+    if len(vals) == 3 and vals[2] is not None and vals[2] <= 0:
+        raise InputError("--frames", f"STEP must be a positive integer, got {vals[2]}")
+    return slice(*vals)
+
+
+def check_options(args) -> None:
+    """Every option checked before Blender starts."""
+    import math
+
+    if args.views < 1:
+        raise InputError("--views", f"must be >= 1, got {args.views}")
+    if args.test_views < 0:
+        raise InputError("--test-views", f"must be >= 0, got {args.test_views}")
+    if args.resolution < 8:
+        raise InputError("--resolution", f"must be >= 8 pixels, got {args.resolution}")
+    if args.samples < 1:
+        raise InputError("--samples", f"must be >= 1, got {args.samples}")
+    if not (math.isfinite(args.fov) and 0 < args.fov < 180):
+        raise InputError("--fov", f"must be an angle in (0, 180) degrees, got {args.fov}")
+    if args.threads < 0:
+        raise InputError("--threads", f"must be >= 0, got {args.threads}")
+    return parse_frames(args.frames)
+
+
+def check_out(args) -> None:
+    """Refuse, before Blender starts, to resume a dataset made from something else (the render
+    script checks again, and clears the folder under --force)."""
+    import hashlib
+
+    from render_data.render_dataset import IMAGE_OPTIONS, ResumeMismatch, check_resume
+
+    if args.out.exists() and not args.out.is_dir():
+        raise InputError(args.out, "--out must be a folder, and this is a file")
+    if getattr(args, "force", False) or not args.out.exists():
+        return
+    opts = {k: getattr(args, k) for k in IMAGE_OPTIONS}
+    ident = {"sim_sha256": hashlib.sha256(Path(args.sim).read_bytes()).hexdigest(), "options": opts}
+    try:
+        check_resume(args.out, ident, False)
+    except ResumeMismatch as e:
+        raise InputError(args.out, str(e).split(": ", 1)[1]) from None
+
+
 def run(args) -> int:
+    from gf_core.io import read_sim
+
+    frames = check_options(args)
+    sim = read_sim(args.sim)
+    if not range(sim.num_frames)[frames]:
+        raise InputError("--frames", f"{args.frames} selects none of the simulation's {sim.num_frames} frames")
+    check_out(args)
     cmd, engine = build_command(args)
     print(f"rendering with {engine}: {' '.join(cmd[:6])} ...", flush=True)
-    proc = subprocess.run(cmd, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
-                          stderr=subprocess.STDOUT, text=True)
-    log = proc.stdout.splitlines()
-    for line in log:  # Blender's own per-tile chatter is dropped; our progress lines are kept
+    proc = subprocess.Popen(cmd, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, bufsize=1)
+    log = []
+    for line in proc.stdout:  # streamed as Blender prints; its per-tile chatter is dropped
+        line = line.rstrip("\n")
+        log.append(line)
         if line.startswith(("frame ", "dataset written", "Error", "Traceback", "  ")) or "error" in line.lower():
-            print(line)
-    if proc.returncode != 0:
+            print(line, flush=True)
+    code = proc.wait()
+    if code != 0:
         tail = "\n".join(log[-15:])
-        raise GFError(f"the render process failed (exit {proc.returncode}):\n{tail}")
+        raise GFError(f"the render process failed (exit {code}):\n{tail}")
+    if engine == "blender":  # Blender's Python has no h5py: the ground-truth copy is made here
+        from gf_core.io import atomic_path
+
+        with atomic_path(args.out / "gt_sim.h5") as tmp:
+            shutil.copyfile(args.sim, tmp)
     return 0

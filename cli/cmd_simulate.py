@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -16,16 +17,51 @@ def register(sub):
                                    f"energy). Scenes: {', '.join(SCENES)}.")
     p.add_argument("scene", choices=SCENES)
     p.add_argument("--out", type=Path, required=True, help="output sim.h5")
-    p.add_argument("--solver", choices=SOLVERS, default="dfsph")
+    p.add_argument("--solver", choices=SOLVERS, default="dfsph", help="particle solver (default: dfsph)")
     p.add_argument("--particles", type=int, default=2000, help="approximate particle count (default 2000)")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the scene's, 60)")
     p.add_argument("--seconds", type=float, default=None, help="simulated time (default: the scene's)")
     p.add_argument("--settle", type=float, default=None, metavar="S",
                    help="seconds of damped settling before t = 0, from which the fluid starts at rest "
                         "(default: the scene's; hydrostatic_tank 6, others 0)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=run)
+
+
+def check_out_file(path: Path, flag: str = "--out") -> None:
+    """An output file we will be able to write, checked before any work: not a folder, a parent
+    that is (or can be made) a writable folder."""
+    from gf_core.errors import InputError
+
+    path = Path(path)
+    if path.exists() and path.is_dir():
+        raise InputError(path, f"{flag} names a folder; give a file name (e.g. {path / 'sim.h5'})")
+    parent = path.parent
+    for up in [parent, *parent.parents]:
+        if up.exists():
+            if not up.is_dir():
+                raise InputError(path, f"{flag}: {up} is a file, so it cannot hold {path.name}")
+            if not os.access(up, os.W_OK | os.X_OK):
+                raise InputError(path, f"{flag}: {up} is not writable")
+            break
+
+
+def check_options(args) -> None:
+    from gf_core.errors import InputError
+
+    for name in ("fps", "seconds"):
+        v = getattr(args, name)
+        if v is not None and not (v > 0 and v != float("inf")):
+            raise InputError(f"--{name}", f"must be a positive number, got {v}")
+    if args.settle is not None and not (args.settle >= 0 and args.settle != float("inf")):
+        raise InputError("--settle", f"must be >= 0 seconds, got {args.settle}")
+    if args.particles is not None and args.particles < 1:
+        raise InputError("--particles", f"must be >= 1, got {args.particles}")
+    from .cmd_reconstruct import check_device
+
+    check_device(args.device)
+    check_out_file(args.out)
 
 
 def run(args) -> int:
@@ -33,6 +69,8 @@ def run(args) -> int:
 
     from gf_core.io import write_sim
     from gf_core.sim import simulate
+
+    check_options(args)  # before the (possibly long) settle and simulation
 
     bar = None
     t0 = time.perf_counter()

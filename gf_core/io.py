@@ -36,6 +36,10 @@ def atomic_path(path: "str | os.PathLike[str]"):
         yield Path(tmp)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        # mkstemp makes the file 0600; a result gets the mode any new file gets (0644 under umask 022)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -167,11 +171,31 @@ class SimData:
         return self.positions.shape[1]
 
 
+def check_sim(sim: SimData, where: str) -> None:
+    """What ``read_sim`` would refuse, refused before writing."""
+    _check_finite("positions", sim.positions, where)
+    _check_finite("velocities", sim.velocities, where)
+    for name in ("fps", "particle_radius", "rest_density"):
+        v = float(getattr(sim, name))
+        if not (np.isfinite(v) and v > 0):
+            raise InputError(where, f"{name} must be a positive number, got {v}; refusing to write")
+    if not np.isfinite(float(sim.viscosity)) or sim.viscosity < 0:
+        raise InputError(where, f"viscosity must be >= 0, got {sim.viscosity}; refusing to write")
+    dmin, dmax = np.asarray(sim.domain_min, float), np.asarray(sim.domain_max, float)
+    if dmin.shape != (3,) or dmax.shape != (3,) or not (np.all(np.isfinite(dmin)) and np.all(np.isfinite(dmax))) \
+            or np.any(dmax <= dmin):
+        raise InputError(where, f"domain_max {dmax.tolist()} must exceed domain_min {dmin.tolist()}; refusing to write")
+    g = np.asarray(sim.gravity, float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise InputError(where, f"gravity must be 3 finite numbers, got {sim.gravity}; refusing to write")
+    if not np.all(np.isfinite(sim.times)):
+        raise InputError(where, "times contain NaN or infinite values; refusing to write")
+
+
 def write_sim(path, sim: SimData) -> Path:
-    """Write ``sim`` to ``path`` atomically. Refuses NaN/inf data."""
+    """Write ``sim`` to ``path`` atomically. Refuses what ``read_sim`` would refuse."""
     path = Path(path)
-    _check_finite("positions", sim.positions, str(path))
-    _check_finite("velocities", sim.velocities, str(path))
+    check_sim(sim, str(path))
     h5py = _h5()
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:

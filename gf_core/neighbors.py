@@ -62,9 +62,34 @@ def neighbor_pairs(x: torch.Tensor, radius: float, y: torch.Tensor | None = None
     return i[perm], j[perm]
 
 
-def knn(x: torch.Tensor, k: int, radius: float, y: torch.Tensor | None = None):
+def knn(x: torch.Tensor, k: int, radius: float, y: torch.Tensor | None = None, *, backend: str = "auto",
+        sorted: bool = True):
     """Up to ``k`` nearest neighbours within ``radius`` (paper Sec. 4.1.2 uses K = 64):
-    (N, k) indices (-1 where fewer) and distances (inf where fewer)."""
+    (N, k) indices (-1 where fewer) and distances (inf where fewer), nearest first; ``y``
+    defaults to ``x`` (then a point is not its own neighbour). ``backend``: "native" (the C++ /
+    CUDA hashed grid of ``csrc/sph_*``), "torch" (this module's vectorised grid, the reference)
+    or "auto" (native when built for the device). Distances carry no gradient on the native
+    path: callers that need one recompute them from the indices. ``sorted=False`` lets the
+    native path skip ordering each row (the same neighbours, in no particular order)."""
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"unknown knn backend {backend!r} (auto, native, torch)")
+    if not radius > 0:
+        raise ValueError(f"neighbour radius must be positive, got {radius}")
+    if not torch.isfinite(x).all() or (y is not None and not torch.isfinite(y).all()):
+        raise ValueError("knn: positions contain NaN or infinite values")
+    if backend != "torch":
+        from .render import native
+
+        ok = native.available() and (x.device.type == "cpu" or (x.device.type == "cuda" and native.has_cuda()))
+        if ok and (x.device.type == "cpu" or k <= 128):
+            return native.knn(x, x if y is None else y, k, radius, y is None, sorted)
+        if backend == "native":
+            raise RuntimeError(f"native knn unavailable for {x.device.type} tensors: {native.unavailable_reason()}")
+    return knn_torch(x, k, radius, y)
+
+
+def knn_torch(x: torch.Tensor, k: int, radius: float, y: torch.Tensor | None = None):
+    """The pure-torch ``knn`` (the reference the native one is tested against)."""
     i, j = neighbor_pairs(x, radius, y)
     n = x.shape[0]
     yy = x if y is None else y

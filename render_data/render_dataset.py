@@ -14,6 +14,7 @@ Needs bpy + numpy, and h5py for a .h5 input (a .npz input needs nothing else).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -49,6 +50,10 @@ def parse_args(argv):
     p.add_argument("--show-container", action="store_true",
                    help="let cameras see the tank and floor (default: only reflections/refractions)")
     p.add_argument("--threads", type=int, default=0, help="render threads (0: all)")
+    p.add_argument("--force", action="store_true",
+                   help="start afresh when OUT holds a dataset of another simulation or other options")
+    p.add_argument("--source-hash", default=None,
+                   help="sha256 of the original sim.h5 (gf-cli passes it when it hands over a .npz)")
     a = p.parse_args(argv)
     if a.views < 1 or a.test_views < 0 or a.resolution < 8 or a.samples < 1:
         p.error("need views >= 1, test-views >= 0, resolution >= 8, samples >= 1")
@@ -104,6 +109,64 @@ def png_ok(path: Path, size: int) -> bool:
             and struct.unpack(">II", head[16:24]) == (size, size))
 
 
+IDENTITY_FILE = "render_source.json"
+IMAGE_OPTIONS = ("views", "test_views", "resolution", "samples", "seed", "material", "fov", "show_container",
+                 "denoise")
+
+
+def file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def source_identity(a) -> dict:
+    """What the images are made from: the simulation's bytes and every option that changes a pixel
+    (the frame range is not one: a resumed run may render more frames)."""
+    return {"sim_sha256": a.source_hash or file_sha256(a.sim),
+            "options": {k: getattr(a, k) for k in IMAGE_OPTIONS}}
+
+
+class ResumeMismatch(Exception):
+    """OUT holds a dataset made from another simulation or other options."""
+
+
+def check_resume(out: Path, ident: dict, force: bool) -> bool:
+    """Refuse to mix runs: OUT may only be resumed by the same simulation and options. Returns
+    True when OUT starts afresh (nothing there, or cleared by --force)."""
+    idf = out / IDENTITY_FILE
+    has_images = any(out.glob("train/*.png")) or any(out.glob("test/*.png"))
+    if idf.exists():
+        try:
+            old = json.loads(idf.read_text())
+        except json.JSONDecodeError:
+            old = {}
+    elif has_images:
+        old = {"sim_sha256": "unknown (no render_source.json)", "options": {}}
+    else:
+        return True
+    if old == ident:
+        return False
+    why = []
+    if old.get("sim_sha256") != ident["sim_sha256"]:
+        why.append(f"the simulation differs (sha256 {str(old.get('sim_sha256'))[:12]}.. here, "
+                   f"{ident['sim_sha256'][:12]}.. given)")
+    for k, v in ident["options"].items():
+        if k in old.get("options", {}) and old["options"][k] != v:
+            why.append(f"--{k.replace('_', '-')} {old['options'][k]} here, {v} given")
+    if not force:
+        raise ResumeMismatch(f"{out}: holds a dataset made from something else ({'; '.join(why) or 'unknown source'}); "
+                             "use --force to start afresh or choose another --out")
+    for sub in ("train", "test"):
+        shutil.rmtree(out / sub, ignore_errors=True)
+    for name in ("transforms_train.json", "transforms_test.json", "manifest.json", "gt_sim.h5", IDENTITY_FILE):
+        (out / name).unlink(missing_ok=True)
+    print(f"--force: cleared {out} ({'; '.join(why)})", flush=True)
+    return True
+
+
 def write_json(path: Path, data) -> None:
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(json.dumps(data, indent=1))
@@ -126,6 +189,13 @@ def main(argv=None) -> int:
     if not frames:
         raise SystemExit(f"--frames {a.frames} selects no frame of {sim['positions'].shape[0]}")
     out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ident = source_identity(a)
+    try:
+        fresh = check_resume(out, ident, a.force)
+    except ResumeMismatch as e:
+        raise SystemExit(str(e)) from None
+    write_json(out / IDENTITY_FILE, ident)
     fluid, cams, tcams = sb.build_scene(
         n_particles=sim["positions"].shape[1], radius=float(sim["particle_radius"]), material=material,
         domain_min=sim["domain_min"], domain_max=sim["domain_max"], views=a.views, test_views=a.test_views,
@@ -153,7 +223,7 @@ def main(argv=None) -> int:
     gt_name = None
     if Path(a.sim).suffix != ".npz":
         gt_name = "gt_sim.h5"
-        if not (out / gt_name).exists() or (out / gt_name).stat().st_size != Path(a.sim).stat().st_size:
+        if fresh or not (out / gt_name).exists():  # resumes check the identity, so a kept copy is the same
             shutil.copyfile(a.sim, out / (gt_name + ".partial"))
             os.replace(out / (gt_name + ".partial"), out / gt_name)
     elif sim.get("gt_file"):
@@ -163,16 +233,20 @@ def main(argv=None) -> int:
         entries = []
         for fi in frames:
             for v, cam in enumerate(cs):
-                entries.append({"file_path": f"{split}/v{v:02d}_f{fi:05d}.png", "view_id": v,
+                # held-out cameras are numbered after the training ones: ids name cameras, not slots
+                entries.append({"file_path": f"{split}/v{v:02d}_f{fi:05d}.png",
+                                "view_id": v + (len(cams) if split == "test" else 0),
                                 "camera_name": cam.name, "time": float(sim["times"][fi]), "frame": int(fi),
                                 "transform_matrix": [list(map(float, row)) for row in cam.matrix_world]})
         meta = {"camera_angle_x": float(cam0.angle_x), "w": a.resolution, "h": a.resolution,
-                "fps": float(sim["fps"]), "background": [0.0, 0.0, 0.0], "frames": entries}
+                "fps": float(sim["fps"]), "time_unit": "seconds", "background": [0.0, 0.0, 0.0],
+                "scene_box": [list(map(float, sim["domain_min"])), list(map(float, sim["domain_max"]))],
+                "frames": entries}
         if gt_name:
             meta["gt_particles"] = gt_name
         write_json(out / f"transforms_{split}.json", meta)
     manifest = {"generator": "gaussfluids render_data/render_dataset.py", "blender": bpy.app.version_string,
-                "options": vars(a), "material": material, "frames": frames,
+                "options": vars(a), "source": ident, "material": material, "frames": frames,
                 "particles": int(sim["positions"].shape[1]), "scene": str(sim.get("scene", "")),
                 "render_seconds": time.perf_counter() - t_start}
     write_json(out / "manifest.json", manifest)

@@ -9,7 +9,7 @@ import pytest
 
 from gf_cli.main import COMMANDS, build_parser, main
 
-EXPECTED = {"demo", "simulate", "render-dataset", "inspect", "bench"}
+EXPECTED = {"demo", "simulate", "render-dataset", "reconstruct", "evaluate", "inspect", "bench"}
 
 
 def test_help_lists_commands_and_each_has_help(capsys):
@@ -18,7 +18,7 @@ def test_help_lists_commands_and_each_has_help(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     assert all(c in out for c in EXPECTED)
-    for cmd in EXPECTED | {"bench render", "bench sim"}:
+    for cmd in EXPECTED | {"bench render", "bench sim", "bench gpu"}:
         with pytest.raises(SystemExit) as e:
             main(cmd.split() + ["--help"])
         assert e.value.code == 0
@@ -48,3 +48,41 @@ def test_demo_end_to_end(tmp_path):
     assert report["splat_vs_blender_alpha_iou"]["mean"] > 0.5
     assert (out / "contact_sheet.png").stat().st_size > 1000
     assert (out / "dataset" / "transforms_train.json").exists()
+
+
+@pytest.fixture(scope="module")
+def small_sim(tmp_path_factory):
+    from gf_core.io import write_sim
+    from gf_core.synthetic import falling_blob
+
+    p = tmp_path_factory.mktemp("cli") / "sim.h5"
+    write_sim(p, falling_blob(n_side=3, frames=3))
+    return p
+
+
+BAD = [
+    (["simulate", "hydrostatic_tank", "--fps", "0", "--out", "{tmp}/s.h5"], "--fps: must be a positive number"),
+    (["simulate", "water_cube", "--seconds", "-1", "--out", "{tmp}/s.h5"], "--seconds: must be a positive number"),
+    (["simulate", "water_cube", "--out", "{tmp}"], "--out names a folder"),
+    (["simulate", "water_cube", "--out", "{sim}/x.h5"], "is a file, so it cannot hold"),
+    (["simulate", "water_cube", "--device", "foo", "--out", "{tmp}/s.h5"], "unknown device 'foo'"),
+    (["render-dataset", "{sim}", "--out", "{tmp}/d", "--frames", "a:b"], "--frames: 'a' is not an integer"),
+    (["render-dataset", "{sim}", "--out", "{tmp}/d", "--frames", "1:5:0"], "STEP must be a positive integer"),
+    (["render-dataset", "{sim}", "--out", "{tmp}/d", "--fov", "0"], "--fov: must be an angle in (0, 180)"),
+    (["render-dataset", "{sim}", "--out", "{tmp}/d", "--frames", "10:20"], "selects none of the simulation's 3 frames"),
+    (["bench", "render", "--particles", "abc"], "--particles: 'abc' is not a number"),
+    (["bench", "render", "--particles", "-5"], "values must be integers >= 1"),
+    (["bench", "render", "--repeats", "0"], "--repeats: must be >= 1"),
+    (["bench", "render", "--particles", "1000", "--out", "{sim}/b.json"], "is a file, so it cannot hold"),
+    (["bench", "sim", "--solvers", "sph"], "unknown solver 'sph'"),
+]
+
+
+@pytest.mark.parametrize("argv, message", BAD, ids=[" ".join(a[:2]) + " " + m[:18] for a, m in BAD])
+def test_user_mistakes_give_one_line_naming_the_option(argv, message, tmp_path, small_sim, capsys):
+    """Each of these once ended in a traceback (or after the expensive work); now one line, exit 2."""
+    argv = [a.format(tmp=tmp_path, sim=small_sim) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -39,7 +39,7 @@ def test_render_and_load_back(sim_file, tmp_path, capsys):
     assert np.allclose(ds.times, sim.times[[0, 2, 4]])
     assert ds.ground_truth().num_particles == sim.num_particles
     test = load_dataset(out, split="test")
-    assert len(test) == 3 and test.views == [0]
+    assert len(test) == 3 and test.views == [5]  # held-out cameras are numbered after the training ones
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["blender"].startswith(("4.", "5.")) and manifest["options"]["seed"] == 0
     cams = ds.cameras()
@@ -78,6 +78,30 @@ def test_resumable_and_deterministic(sim_file, tmp_path, capsys):
     assert np.array_equal(again, first)  # same seed, same pixels
     assert not list(out.rglob("*.partial*"))
     assert time.time() - t0 < 120
+
+
+def test_resume_refuses_another_simulation(sim_file, tmp_path, capsys):
+    """Rendering simulation B into a folder made from simulation A is refused (it used to skip
+    every frame and keep A's images under B's manifest); --force starts afresh."""
+    from gf_cli.main import main
+
+    out = tmp_path / "ds"
+    render(sim_file, out, "--views", "2", "--frames", "0:1")
+    other, _ = simulate("honey_cone", particles=500, fps=20, seconds=0.1)
+    b = tmp_path / "b.h5"
+    write_sim(b, other)
+    capsys.readouterr()
+    assert main(["render-dataset", str(b), "--out", str(out), "--resolution", "64", "--samples", "4",
+                 "--views", "2", "--frames", "0:1"]) == 2
+    err = capsys.readouterr().err + capsys.readouterr().out
+    assert "made from something else" in err and "the simulation differs" in err
+    assert main(["render-dataset", str(sim_file), "--out", str(out), "--resolution", "32", "--samples", "4",
+                 "--views", "2", "--frames", "0:1"]) == 2  # other options: refused too
+    assert "--resolution 64 here, 32 given" in capsys.readouterr().err
+    render(b, out, "--views", "2", "--frames", "0:1", "--force")
+    assert read_sim(out / "gt_sim.h5").num_particles == other.num_particles
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["source"]["options"]["material"] == "auto" and manifest["material"] == "honey"
 
 
 def test_bad_inputs(sim_file, tmp_path):

@@ -34,19 +34,50 @@ def detect_layout(path: Path, split: str = "train") -> str:
 
 
 def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale: bool = False,
-                 background_removal: str | None = None, fps: float | None = None) -> FluidDataset:
+                 background_removal: str | None = None, fps: float | None = None,
+                 duration: float | None = None) -> FluidDataset:
+    """Load one split. Frame times end up in seconds: a dataset whose ``time_unit`` is
+    "normalized" (D-NeRF's [0, 1]) is rescaled by ``duration`` (seconds of the clip) or ``fps``
+    (given here or in the dataset); ``meta["time_source"]`` says which was used."""
     path = Path(path)
+    for name, v in (("fps", fps), ("duration", duration)):
+        if v is not None and not (isinstance(v, (int, float)) and v > 0 and v == v and v != float("inf")):
+            raise InputError(path, f"--{name} must be a positive number, got {v!r}")
     if layout == "auto":
         layout = detect_layout(path, split)
     if layout == "nerf":
-        return load_nerf(path, split, grayscale=grayscale, background_removal=background_removal)
-    if layout == "neurofluid":
+        ds = load_nerf(path, split, grayscale=grayscale, background_removal=background_removal)
+    elif layout == "neurofluid":
         ds = load_neurofluid(path, split, fps=fps, grayscale=grayscale)
         ds.background_removal = background_removal
+    elif layout == "video":
+        ds = load_video(path, grayscale=grayscale, background_removal=background_removal)
+    else:
+        raise ValueError(f"unknown dataset layout {layout!r}; choose from auto, {', '.join(LAYOUTS)}")
+    return to_seconds(ds, fps=fps, duration=duration)
+
+
+def to_seconds(ds: FluidDataset, *, fps: float | None = None, duration: float | None = None) -> FluidDataset:
+    from dataclasses import replace
+
+    if ds.meta.get("time_unit", "seconds") != "normalized":
+        ds.meta.setdefault("time_source", "seconds")
         return ds
-    if layout == "video":
-        return load_video(path, grayscale=grayscale, background_removal=background_removal)
-    raise ValueError(f"unknown dataset layout {layout!r}; choose from auto, {', '.join(LAYOUTS)}")
+    duration = duration or ds.meta.get("duration")
+    fps = fps or ds.meta.get("fps")
+    times = sorted({f.time for f in ds.frames})
+    if duration:
+        scale, src = float(duration), f"normalized x duration {duration:g} s"
+    elif fps and len(times) > 1:
+        scale, src = (len(times) - 1) / float(fps) / max(times[-1] - times[0], 1e-12), \
+            f"normalized, {len(times)} frames at {fps:g} fps"
+    else:
+        ds.meta["time_source"] = "normalized (no fps or duration given: times are clip fractions, not seconds)"
+        return ds
+    ds.frames = [replace(f, time=f.time * scale) for f in ds.frames]
+    ds.meta["time_source"] = src
+    ds.meta["time_unit"] = "seconds"
+    return ds
 
 
 def load_grayscale(path, *, layout: str = "auto", split: str = "train",

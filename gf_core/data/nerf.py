@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -60,10 +61,17 @@ def _num(d: dict, key: str, json_path: Path, where: str):
     return float(v)
 
 
+VIEW_KEYS = ("view_id", "view", "camera_id")
+
+
 def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int | None = None,
                      fps: float | None = None, time_from_index: bool = False,
-                     check_sizes: bool = True):
-    """Frame records from one transforms JSON. Returns (records, json dict)."""
+                     check_sizes: bool = True, known_views: dict | None = None):
+    """Frame records from one transforms JSON. Returns (records, json dict).
+
+    A frame's view id comes from ``view_id``, ``view`` or ``camera_id`` (first found), else from its
+    pose (frames with the same pose share one); ``known_views`` (pose bytes -> id) gives poses
+    already numbered (the training split's) their ids."""
     json_path = Path(json_path)
     meta = read_json(json_path)
     root = json_path.parent
@@ -125,12 +133,19 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
                 t = k / fps
             else:
                 raise InputError(json_path, f"{where}: no 'time' (and no 'frame' with a top-level 'fps')")
+        key = np.round(c2w, 6).tobytes()
+        id_key = next((k2 for k2 in VIEW_KEYS if k2 in fr), None)
         if fixed_view is not None:
             view = fixed_view
-        elif "view_id" in fr or "camera_id" in fr:
-            view = int(fr.get("view_id", fr.get("camera_id"))) + view_offset
+        elif known_views is not None and key in known_views:
+            view = known_views[key]  # the same pose as a training camera: the same view
+        elif id_key is not None:
+            raw = fr[id_key]
+            if isinstance(raw, bool) or not isinstance(raw, (int, float, str)) or \
+                    not str(raw).strip().lstrip("-").isdigit():
+                raise InputError(json_path, f"{where}: {id_key!r} must be an integer, got {raw!r}")
+            view = int(str(raw).strip()) + view_offset
         else:
-            key = np.round(c2w, 6).tobytes()
             view = view_of_pose.setdefault(key, len(view_of_pose) + view_offset)
         mask = fr.get("mask_path")
         mask = resolve_image(root, mask, json_path, "mask") if mask else None
@@ -149,10 +164,47 @@ def _gt_file(root: Path, meta: dict, json_path: Path) -> Path | None:
     return p if p.exists() else None
 
 
-def _background(meta: dict, channels: int) -> tuple:
+def _background(meta: dict, channels: int, json_path: Path | str = "dataset") -> tuple:
     bg = meta.get("background", [0.0, 0.0, 0.0])
-    bg = [float(bg)] * 3 if isinstance(bg, (int, float)) else [float(x) for x in bg]
-    return tuple(bg[:channels]) if channels == 1 else tuple(bg[:3])
+    vals = [bg] if isinstance(bg, (int, float)) and not isinstance(bg, bool) else bg
+    if not isinstance(vals, list) or len(vals) not in (1, 3) or \
+            any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in vals):
+        raise InputError(json_path, f"'background' must be a number or 3 numbers, got {bg!r}")
+    vals = [float(x) for x in vals] * (3 if len(vals) == 1 else 1)
+    return tuple(vals[:channels]) if channels == 1 else tuple(vals[:3])
+
+
+TIME_UNITS = ("seconds", "normalized")
+
+
+def dataset_meta(meta: dict, json_path: Path) -> dict:
+    """The documented top-level keys a reconstruction uses: ``scene_box`` [[x0,y0,z0],[x1,y1,z1]]
+    (metres), ``time_unit`` ("seconds", default, or "normalized": D-NeRF's [0, 1] clip time),
+    ``fps`` and ``duration`` (seconds of the clip, for normalised time)."""
+    out = {}
+    if "scene_box" in meta:
+        box = np.asarray(meta["scene_box"], dtype=object)
+        try:
+            a = np.asarray(meta["scene_box"], np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.shape != (2, 3) or not np.all(np.isfinite(a)) or np.any(a[1] <= a[0]):
+            raise InputError(json_path, f"'scene_box' must be [[x0, y0, z0], [x1, y1, z1]] with max > min, "
+                                        f"got {box.tolist()}")
+        out["scene_box"] = a.tolist()
+    unit = meta.get("time_unit", "seconds")
+    if unit == "normalised":
+        unit = "normalized"
+    if unit not in TIME_UNITS:
+        raise InputError(json_path, f"'time_unit' must be one of {', '.join(TIME_UNITS)}, got {unit!r}")
+    out["time_unit"] = unit
+    for k in ("fps", "duration"):
+        v = _num(meta, k, json_path, "top level")
+        if v is not None:
+            if v <= 0:
+                raise InputError(json_path, f"'{k}' must be positive, got {v}")
+            out[k] = v
+    return out
 
 
 def load_nerf(root, split: str = "train", *, grayscale: bool = False,
@@ -160,12 +212,25 @@ def load_nerf(root, split: str = "train", *, grayscale: bool = False,
     """A D-NeRF style dataset: ``root/transforms_{split}.json`` with per-frame ``time``."""
     root = Path(root)
     json_path = root / f"transforms_{split}.json"
-    records, meta = parse_transforms(json_path)
+    known, offset = None, 0
+    train_json = root / "transforms_train.json"
+    if split != "train" and train_json.exists():
+        # held-out cameras never take a training camera's id: same pose -> same id, others after
+        train_recs, _ = parse_transforms(train_json, check_sizes=False)
+        known = {np.round(r.camera.to_blender_c2w(), 6).tobytes(): r.view_id for r in train_recs}
+        offset = max(r.view_id for r in train_recs) + 1
+    records, meta = parse_transforms(json_path, known_views=known)
+    if known is not None:
+        train_ids = set(known.values())
+        pose_of = {r.view_id: np.round(r.camera.to_blender_c2w(), 6).tobytes() for r in records}
+        clash = {v for v, k in pose_of.items() if v in train_ids and known.get(k) != v}
+        if clash:
+            records = [replace(r, view_id=r.view_id + offset) if r.view_id in clash else r for r in records]
     ch = 1 if grayscale else 3
     return FluidDataset(frames=records, root=root, channels=ch,
-                        background=_background(meta, ch), background_removal=background_removal,
+                        background=_background(meta, ch, json_path), background_removal=background_removal,
                         gt_file=_gt_file(root, meta, json_path),
-                        meta={"layout": "nerf", "split": split})
+                        meta={"layout": "nerf", "split": split, **dataset_meta(meta, json_path)})
 
 
 def load_neurofluid(root, split: str = "train", *, fps: float | None = None,

@@ -1,7 +1,8 @@
 """The differentiable Gaussian-particle renderer: one public entry, ``render``.
 
-Backends: ``reference`` (pure torch, any device, autograd: the oracle) and ``native`` (C++/OpenMP
-on CPU, hand-written backward). ``backend="auto"`` picks native for CPU tensors when it builds.
+Backends: ``reference`` (pure torch, any device, autograd: the oracle) and ``native`` (one
+extension: C++/OpenMP for CPU tensors, CUDA for GPU tensors, hand-written backward).
+``backend="auto"`` picks native whenever it is built for the tensors' device.
 """
 
 from __future__ import annotations
@@ -44,21 +45,49 @@ def _check(name, t, shape_tail, n=None):
     if t.dim() != 1 + len(shape_tail) or tuple(t.shape[1:]) != tuple(shape_tail) or (n is not None and t.shape[0] != n):
         want = ", ".join(["N"] + [str(s) for s in shape_tail])
         raise InputError("render", f"{name} must have shape ({want}) with N={n}, got {tuple(t.shape)}")
-    if not torch.isfinite(t).all():
-        raise InputError("render", f"{name} contains NaN or infinite values")
+
+
+def _check_values(named: dict) -> None:
+    """Finite values, non-negative scales, opacities in [0, 1]: one device sync for all checks."""
+    scales, opac = named["scales"], named["opacities"]
+    flags = [~torch.isfinite(t).all() for t in named.values()]
+    flags += [(scales < 0).any(), ((opac < 0) | (opac > 1)).any()]
+    bad = torch.stack(flags).cpu().tolist()
+    for (name, _), b in zip(named.items(), bad):
+        if b:
+            raise InputError("render", f"{name} contains NaN or infinite values")
+    if bad[-2]:
+        raise InputError("render", "scales must be non-negative (pass exp(log_scales))")
+    if bad[-1]:
+        raise InputError("render", "opacities must lie in [0, 1] (pass sigmoid(logits))")
+
+
+def _check_dtypes(named: dict) -> None:
+    first, t0 = next(iter(named.items()))
+    for name, t in named.items():
+        if t.dtype not in (torch.float32, torch.float64):
+            raise InputError("render", f"{name} is {t.dtype}; the renderer takes float32 or float64 tensors")
+        if t.dtype != t0.dtype:
+            raise InputError("render", f"{name} is {t.dtype} but {first} is {t0.dtype}; pass every tensor in one dtype")
+        if t.device != t0.device:
+            raise InputError("render", f"{name} is on {t.device} but {first} is on {t0.device}")
 
 
 def pick_backend(backend: str, device: torch.device) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"unknown renderer backend {backend!r}; choose from {', '.join(BACKENDS)}")
     if backend == "auto":
-        return "native" if device.type == "cpu" and native.available() else "reference"
+        if device.type == "cpu":
+            return "native" if native.available() else "reference"
+        return "native" if device.type == "cuda" and native.has_cuda() else "reference"
     if backend == "native":
-        if device.type != "cpu":
-            raise ValueError("the native backend runs on CPU tensors; use backend='reference' on "
-                             f"{device.type}")
         if not native.available():
             raise RuntimeError(f"native backend unavailable: {native.unavailable_reason()}")
+        if device.type == "cuda" and not native.has_cuda():
+            raise ValueError("the native extension was built without CUDA (no nvcc, or no GPU at build time); "
+                             "use backend='reference' for CUDA tensors")
+        if device.type not in ("cpu", "cuda"):
+            raise ValueError(f"the native backend runs on CPU and CUDA tensors, not {device.type}")
     return backend
 
 
@@ -83,11 +112,8 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
             or sh.shape[1] not in (1, 4, 9, 16):
         raise InputError("render", f"sh must have shape (N={n}, (degree+1)^2, 1 or 3), got "
                                    f"{tuple(sh.shape) if isinstance(sh, torch.Tensor) else type(sh).__name__}")
-    _check("sh", sh, tuple(sh.shape[1:]), n)
-    if (scales < 0).any():
-        raise InputError("render", "scales must be non-negative (pass exp(log_scales))")
-    if ((opacities < 0) | (opacities > 1)).any():
-        raise InputError("render", "opacities must lie in [0, 1] (pass sigmoid(logits))")
+    named = {"means": means, "scales": scales, "quats": quats, "opacities": opacities, "sh": sh}
+    _check_dtypes(named)
     if not 0 < min_alpha < 1:
         raise ValueError(f"min_alpha must be in (0, 1), got {min_alpha}")
     max_degree = int(math.isqrt(sh.shape[1])) - 1
@@ -101,12 +127,14 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     if bg.numel() != channels:
         raise InputError("render", f"background has {bg.numel()} values for {channels} channels")
     W, H = camera.width, camera.height
-    viewmat, intr = camera.to_torch(device=dev, dtype=torch.float64)
     which = pick_backend(backend, dev)
+    if which != "native":  # the native projection checks every value itself, in the same pass
+        _check_values(named)
+    viewmat, intr = camera.to_torch(device="cpu" if which == "native" else dev, dtype=torch.float64)
 
     if which == "native":
         means2d, conics, depths, colors, radii = native.ProjectFn.apply(
-            means, scales, quats, opacities, sh, viewmat.cpu(), intr.cpu(), W, H, camera.near,
+            means, scales, quats, opacities, sh, viewmat, intr, W, H, camera.near,
             min_alpha, degree)
     else:
         means2d, conics, depths, colors, radii = reference.project(
@@ -117,8 +145,12 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     features = torch.cat([colors, depths[:, None]], 1) if return_depth else colors
     bg_f = torch.cat([bg, bg.new_zeros(1)]) if return_depth else bg
     if which == "native":
-        img, T = native.RasterizeFn.apply(means2d, conics, opacities, features, bg_f, radii, depths,
-                                          W, H, tile_size, min_alpha)
+        try:
+            img, T = native.RasterizeFn.apply(means2d, conics, opacities, features, bg_f, radii, depths,
+                                              W, H, tile_size, min_alpha)
+        except native.InvalidInput:
+            _check_values(named)  # names the tensor and the problem
+            raise
     else:
         img, T = reference.rasterize(means2d, conics, opacities, features, bg_f, radii, depths, W, H,
                                      tile=tile_size, min_alpha=min_alpha)

@@ -23,11 +23,12 @@ constexpr double kFrustumSlack = 1.3;
 
 constexpr double kShC0 = 0.28209479177387814;
 constexpr double kShC1 = 0.4886025119029199;
-constexpr double kShC2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-                             -1.0925484305920792, 0.5462742152960396};
-constexpr double kShC3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658,
-                             0.3731763325901154, -0.4570457994644658, 1.445305721320277,
-                             -0.5900435899266435};
+// (scalars, not arrays: namespace-scope constexpr arrays are not visible in CUDA device code)
+constexpr double kShC2_0 = 1.0925484305920792, kShC2_1 = -1.0925484305920792, kShC2_2 = 0.31539156525252005,
+                 kShC2_3 = -1.0925484305920792, kShC2_4 = 0.5462742152960396;
+constexpr double kShC3_0 = -0.5900435899266435, kShC3_1 = 2.890611442640554, kShC3_2 = -0.4570457994644658,
+                 kShC3_3 = 0.3731763325901154, kShC3_4 = -0.4570457994644658, kShC3_5 = 1.445305721320277,
+                 kShC3_6 = -0.5900435899266435;
 
 // Camera: world-to-camera rotation (row-major) and translation, intrinsics, image size.
 struct Cam {
@@ -83,13 +84,13 @@ GF_HD void sh_basis(int degree, const double d[3], double Y[16]) {
   if (degree > 0) { Y[1] = -kShC1 * y; Y[2] = kShC1 * z; Y[3] = -kShC1 * x; }
   if (degree > 1) {
     double xx = x * x, yy = y * y, zz = z * z;
-    Y[4] = kShC2[0] * x * y; Y[5] = kShC2[1] * y * z; Y[6] = kShC2[2] * (2 * zz - xx - yy);
-    Y[7] = kShC2[3] * x * z; Y[8] = kShC2[4] * (xx - yy);
+    Y[4] = kShC2_0 * x * y; Y[5] = kShC2_1 * y * z; Y[6] = kShC2_2 * (2 * zz - xx - yy);
+    Y[7] = kShC2_3 * x * z; Y[8] = kShC2_4 * (xx - yy);
     if (degree > 2) {
-      Y[9] = kShC3[0] * y * (3 * xx - yy);  Y[10] = kShC3[1] * x * y * z;
-      Y[11] = kShC3[2] * y * (4 * zz - xx - yy); Y[12] = kShC3[3] * z * (2 * zz - 3 * xx - 3 * yy);
-      Y[13] = kShC3[4] * x * (4 * zz - xx - yy); Y[14] = kShC3[5] * z * (xx - yy);
-      Y[15] = kShC3[6] * x * (xx - 3 * yy);
+      Y[9] = kShC3_0 * y * (3 * xx - yy);  Y[10] = kShC3_1 * x * y * z;
+      Y[11] = kShC3_2 * y * (4 * zz - xx - yy); Y[12] = kShC3_3 * z * (2 * zz - 3 * xx - 3 * yy);
+      Y[13] = kShC3_4 * x * (4 * zz - xx - yy); Y[14] = kShC3_5 * z * (xx - yy);
+      Y[15] = kShC3_6 * x * (xx - 3 * yy);
     }
   }
 }
@@ -101,23 +102,23 @@ GF_HD void sh_basis_vjp(int degree, const double d[3], const double gY[16], doub
   if (degree > 0) { gd[1] += -kShC1 * gY[1]; gd[2] += kShC1 * gY[2]; gd[0] += -kShC1 * gY[3]; }
   if (degree > 1) {
     double xx = x * x, yy = y * y, zz = z * z;
-    gd[0] += kShC2[0] * y * gY[4]; gd[1] += kShC2[0] * x * gY[4];
-    gd[1] += kShC2[1] * z * gY[5]; gd[2] += kShC2[1] * y * gY[5];
-    gd[0] += -2 * kShC2[2] * x * gY[6]; gd[1] += -2 * kShC2[2] * y * gY[6]; gd[2] += 4 * kShC2[2] * z * gY[6];
-    gd[0] += kShC2[3] * z * gY[7]; gd[2] += kShC2[3] * x * gY[7];
-    gd[0] += 2 * kShC2[4] * x * gY[8]; gd[1] += -2 * kShC2[4] * y * gY[8];
+    gd[0] += kShC2_0 * y * gY[4]; gd[1] += kShC2_0 * x * gY[4];
+    gd[1] += kShC2_1 * z * gY[5]; gd[2] += kShC2_1 * y * gY[5];
+    gd[0] += -2 * kShC2_2 * x * gY[6]; gd[1] += -2 * kShC2_2 * y * gY[6]; gd[2] += 4 * kShC2_2 * z * gY[6];
+    gd[0] += kShC2_3 * z * gY[7]; gd[2] += kShC2_3 * x * gY[7];
+    gd[0] += 2 * kShC2_4 * x * gY[8]; gd[1] += -2 * kShC2_4 * y * gY[8];
     if (degree > 2) {
-      gd[0] += 6 * kShC3[0] * x * y * gY[9]; gd[1] += kShC3[0] * (3 * xx - 3 * yy) * gY[9];
-      gd[0] += kShC3[1] * y * z * gY[10]; gd[1] += kShC3[1] * x * z * gY[10]; gd[2] += kShC3[1] * x * y * gY[10];
-      gd[0] += -2 * kShC3[2] * x * y * gY[11]; gd[1] += kShC3[2] * (4 * zz - xx - 3 * yy) * gY[11];
-      gd[2] += 8 * kShC3[2] * y * z * gY[11];
-      gd[0] += -6 * kShC3[3] * x * z * gY[12]; gd[1] += -6 * kShC3[3] * y * z * gY[12];
-      gd[2] += kShC3[3] * (6 * zz - 3 * xx - 3 * yy) * gY[12];
-      gd[0] += kShC3[4] * (4 * zz - 3 * xx - yy) * gY[13]; gd[1] += -2 * kShC3[4] * x * y * gY[13];
-      gd[2] += 8 * kShC3[4] * x * z * gY[13];
-      gd[0] += 2 * kShC3[5] * x * z * gY[14]; gd[1] += -2 * kShC3[5] * y * z * gY[14];
-      gd[2] += kShC3[5] * (xx - yy) * gY[14];
-      gd[0] += kShC3[6] * (3 * xx - 3 * yy) * gY[15]; gd[1] += -6 * kShC3[6] * x * y * gY[15];
+      gd[0] += 6 * kShC3_0 * x * y * gY[9]; gd[1] += kShC3_0 * (3 * xx - 3 * yy) * gY[9];
+      gd[0] += kShC3_1 * y * z * gY[10]; gd[1] += kShC3_1 * x * z * gY[10]; gd[2] += kShC3_1 * x * y * gY[10];
+      gd[0] += -2 * kShC3_2 * x * y * gY[11]; gd[1] += kShC3_2 * (4 * zz - xx - 3 * yy) * gY[11];
+      gd[2] += 8 * kShC3_2 * y * z * gY[11];
+      gd[0] += -6 * kShC3_3 * x * z * gY[12]; gd[1] += -6 * kShC3_3 * y * z * gY[12];
+      gd[2] += kShC3_3 * (6 * zz - 3 * xx - 3 * yy) * gY[12];
+      gd[0] += kShC3_4 * (4 * zz - 3 * xx - yy) * gY[13]; gd[1] += -2 * kShC3_4 * x * y * gY[13];
+      gd[2] += 8 * kShC3_4 * x * z * gY[13];
+      gd[0] += 2 * kShC3_5 * x * z * gY[14]; gd[1] += -2 * kShC3_5 * y * z * gY[14];
+      gd[2] += kShC3_5 * (xx - yy) * gY[14];
+      gd[0] += kShC3_6 * (3 * xx - 3 * yy) * gY[15]; gd[1] += -6 * kShC3_6 * x * y * gY[15];
     }
   }
 }
@@ -285,6 +286,16 @@ GF_HD void project_core_vjp(const Cam& cam, const double s[3], const Proj& P, co
     double dot = gd[0] * P.dir[0] + gd[1] * P.dir[1] + gd[2] * P.dir[2];
     for (int i = 0; i < 3; ++i) gp[i] += (gd[i] - P.dir[i] * dot) / P.dir_norm;
   }
+}
+
+// Inputs a projection can use: finite, scales >= 0, opacity in [0, 1]. A Gaussian that fails
+// gets radius -1 (not drawn), which the binning counts so that the caller can say what was wrong.
+GF_HD bool inputs_valid(const double p[3], const double s[3], const double q[4], double opacity) {
+  for (int i = 0; i < 3; ++i)
+    if (!isfinite(p[i]) || !isfinite(s[i]) || !(s[i] >= 0)) return false;
+  for (int i = 0; i < 4; ++i)
+    if (!isfinite(q[i])) return false;
+  return isfinite(opacity) && opacity >= 0 && opacity <= 1;
 }
 
 // ---- per-pixel ----------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 // CPU backend of the splatting renderer: OpenMP over Gaussians (projection) and over tiles
-// (rasterisation), hand-written forward and backward. Math in gaussian_math.h.
+// (rasterisation), hand-written forward and backward. Math in gaussian_math.h; the device
+// dispatch and the Python bindings are in ext.cpp, the CUDA twin in render_cuda.cu.
 #include <torch/extension.h>
 
 #include <algorithm>
@@ -12,28 +13,12 @@
 #endif
 
 #include "gaussian_math.h"
+#include "ops.h"
 
 namespace {
 
 using gf::Cam;
 using gf::Proj;
-
-Cam make_cam(const torch::Tensor& viewmat, const torch::Tensor& intr, int64_t W, int64_t H, double near) {
-  TORCH_CHECK(viewmat.numel() == 16 && intr.numel() == 4, "viewmat must be 4x4 and intr [fx, fy, cx, cy]");
-  auto vm = viewmat.to(torch::kCPU, torch::kFloat64).contiguous();
-  auto in = intr.to(torch::kCPU, torch::kFloat64).contiguous();
-  const double* m = vm.data_ptr<double>();
-  const double* k = in.data_ptr<double>();
-  Cam c;
-  for (int r = 0; r < 3; ++r) {
-    for (int j = 0; j < 3; ++j) c.R[3 * r + j] = m[4 * r + j];
-    c.t[r] = m[4 * r + 3];
-  }
-  for (int j = 0; j < 3; ++j) c.campos[j] = -(c.R[j] * c.t[0] + c.R[3 + j] * c.t[1] + c.R[6 + j] * c.t[2]);
-  c.fx = k[0]; c.fy = k[1]; c.cx = k[2]; c.cy = k[3];
-  c.width = (int)W; c.height = (int)H; c.near = near;
-  return c;
-}
 
 int num_threads() {
 #ifdef _OPENMP
@@ -63,9 +48,11 @@ void project_fwd_impl(const Cam& cam, int64_t N, int K, int Cc, int degree, doub
     for (int j = 0; j < 4; ++j) q[j] = quats[4 * i + j];
     Proj P;
     int r = 0;
-    if (gf::project_core(cam, p, s, q, P)) r = gf::splat_radius(P, (double)opac[i], min_alpha, cam.width, cam.height);
-    radii[i] = r;
-    if (r == 0) {
+    bool valid = gf::inputs_valid(p, s, q, (double)opac[i]);
+    for (int k = 0; valid && k < K * Cc; ++k) valid = std::isfinite((double)sh[(int64_t)i * K * Cc + k]);
+    if (valid && gf::project_core(cam, p, s, q, P)) r = gf::splat_radius(P, (double)opac[i], min_alpha, cam.width, cam.height);
+    radii[i] = valid ? r : -1;
+    if (r <= 0 || !valid) {
       means2d[2 * i] = means2d[2 * i + 1] = 0;
       conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = 0;
       depths[i] = 0;
@@ -355,16 +342,15 @@ void raster_bwd_impl(int64_t N, int W, int H, int tile, int F, double min_alpha,
   }
 }
 
-void check_cpu(const torch::Tensor& t, const char* name) {
-  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
-}
+}  // namespace
 
-// ================================ bindings ========================================================
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+namespace gf {
+
+// ================================ entry points (called by ext.cpp) ================================
+std::vector<torch::Tensor> project_forward_cpu(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
                                            torch::Tensor opac, torch::Tensor sh, torch::Tensor viewmat,
                                            torch::Tensor intr, int64_t W, int64_t H, double near,
                                            double min_alpha, int64_t degree) {
-  check_cpu(means, "means");
   means = means.contiguous(); scales = scales.contiguous(); quats = quats.contiguous();
   opac = opac.contiguous(); sh = sh.contiguous();
   int64_t N = means.size(0);
@@ -384,7 +370,7 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor sc
   return {means2d, conics, depths, colors, radii};
 }
 
-std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+std::vector<torch::Tensor> project_backward_cpu(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
                                             torch::Tensor sh, torch::Tensor viewmat, torch::Tensor intr,
                                             int64_t W, int64_t H, double near, int64_t degree,
                                             torch::Tensor radii, torch::Tensor g_means2d, torch::Tensor g_conics,
@@ -408,44 +394,54 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor s
   return {g_means, g_scales, g_quats, g_sh};
 }
 
-std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                             torch::Tensor feat, torch::Tensor bg, torch::Tensor radii,
-                                             torch::Tensor depths, int64_t W, int64_t H, int64_t tile,
-                                             double min_alpha) {
-  check_cpu(means2d, "means2d");
-  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
-  feat = feat.contiguous(); bg = bg.contiguous(); radii = radii.contiguous(); depths = depths.contiguous();
+std::vector<torch::Tensor> bin_gaussians_cpu(torch::Tensor means2d, torch::Tensor depths, torch::Tensor radii,
+                                             int64_t W, int64_t H, int64_t tile) {
+  means2d = means2d.contiguous(); depths = depths.contiguous(); radii = radii.contiguous();
   int64_t N = means2d.size(0);
+  std::vector<int64_t> offsets;
+  std::vector<int32_t> ids;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_gaussians", [&] {
+    bin_impl<scalar_t>(N, means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
+                       (int)W, (int)H, (int)tile, offsets, ids);
+  });
+  auto off_t = torch::from_blob(offsets.data(), {(int64_t)offsets.size()}, torch::kInt64).clone();
+  auto ids_t = torch::from_blob(ids.data(), {(int64_t)ids.size()}, torch::kInt32).clone();
+  const int32_t* r = radii.data_ptr<int32_t>();
+  int64_t invalid = 0;
+  for (int64_t i = 0; i < N; ++i) invalid += r[i] < 0;
+  return {off_t, ids_t, torch::full({1}, invalid, torch::kInt64)};
+}
+
+std::vector<torch::Tensor> rasterize_forward_cpu(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                                 torch::Tensor feat, torch::Tensor bg, torch::Tensor radii,
+                                                 torch::Tensor offsets, torch::Tensor ids, int64_t W, int64_t H,
+                                                 int64_t tile, double min_alpha) {
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  feat = feat.contiguous(); bg = bg.contiguous(); radii = radii.contiguous();
+  offsets = offsets.contiguous(); ids = ids.contiguous();
   int F = (int)feat.size(1);
-  TORCH_CHECK(bg.numel() == F, "background must have one value per feature channel");
   TORCH_CHECK(tile >= 1 && tile <= kMaxTile, "tile size must be in [1, ", kMaxTile, "]");
   auto opts = means2d.options();
   auto out = torch::empty({H, W, F}, opts), T = torch::empty({H, W}, opts);
   auto nc = torch::empty({H, W}, opts.dtype(torch::kInt32));
-  std::vector<int64_t> offsets;
-  std::vector<int32_t> ids;
-  torch::Tensor off_t, ids_t;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
-    bin_impl<scalar_t>(N, means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                       (int)W, (int)H, (int)tile, offsets, ids);
     raster_fwd_impl<scalar_t>((int)W, (int)H, (int)tile, F, min_alpha, means2d.data_ptr<scalar_t>(),
                               conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                              feat.data_ptr<scalar_t>(),
-                              bg.data_ptr<scalar_t>(), offsets.data(), ids.data(), out.data_ptr<scalar_t>(),
-                              T.data_ptr<scalar_t>(), nc.data_ptr<int32_t>());
+                              feat.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(),
+                              ids.data_ptr<int32_t>(), out.data_ptr<scalar_t>(), T.data_ptr<scalar_t>(),
+                              nc.data_ptr<int32_t>());
   });
-  off_t = torch::from_blob(offsets.data(), {(int64_t)offsets.size()}, torch::kInt64).clone();
-  ids_t = torch::from_blob(ids.data(), {(int64_t)ids.size()}, torch::kInt32).clone();
-  return {out, T, nc, off_t, ids_t};
+  return {out, T, nc};
 }
 
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+std::vector<torch::Tensor> rasterize_backward_cpu(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                               torch::Tensor radii, torch::Tensor feat, torch::Tensor bg, torch::Tensor offsets,
                                               torch::Tensor ids, torch::Tensor T_final, torch::Tensor n_contrib,
                                               torch::Tensor g_out, torch::Tensor g_T, int64_t W, int64_t H,
                                               int64_t tile, double min_alpha) {
-  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous();
+  means2d = means2d.contiguous(); conics = conics.contiguous(); opac = opac.contiguous(); radii = radii.contiguous();
   feat = feat.contiguous(); bg = bg.contiguous(); g_out = g_out.contiguous(); g_T = g_T.contiguous();
+  offsets = offsets.contiguous(); ids = ids.contiguous(); T_final = T_final.contiguous(); n_contrib = n_contrib.contiguous();
   int64_t N = means2d.size(0);
   int F = (int)feat.size(1);
   auto g_m = torch::zeros_like(means2d), g_c = torch::zeros_like(conics);
@@ -462,16 +458,4 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
   return {g_m, g_c, g_o, g_f};
 }
 
-std::vector<double> constants() {
-  return {gf::kLowPass, gf::kAlphaMax, gf::kTransmittanceMin, gf::kFrustumSlack, gf::kShC0, gf::kShC1};
-}
-
-}  // namespace
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("project_forward", &project_forward, "per-Gaussian projection (forward)");
-  m.def("project_backward", &project_backward, "per-Gaussian projection (backward)");
-  m.def("rasterize_forward", &rasterize_forward, "tile binning + front-to-back compositing (forward)");
-  m.def("rasterize_backward", &rasterize_backward, "compositing (backward)");
-  m.def("constants", &constants, "the renderer constants compiled into the extension");
-}
+}  // namespace gf

@@ -1,0 +1,217 @@
+"""Configuration of ``gf-cli reconstruct``: nested dataclasses read from TOML presets
+(``gf_core/presets/{water,honey,smoke}.toml``, every key documented there) and user files.
+
+Precedence: built-in defaults < preset < ``--config FILE`` < command-line options. Unknown
+sections or keys, and values of the wrong type, are errors that name the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import InputError
+from .losses import TABLE1_WEIGHTS
+from .temporal import DecoderConfig
+
+PRESET_DIR = Path(__file__).parent / "presets"
+PRESETS = ("water", "honey", "smoke")
+
+
+@dataclass
+class ModelConfig:
+    sh_degree: int = 1
+    init: str = "carve"            # carve (alpha masks) | random (uniform in the scene box)
+    init_particles: int = 8000
+    max_particles: int = 16000
+    init_opacity: float = 0.1
+    init_scale: float = 0.5        # Gaussian std in particle spacings
+    carve_threshold: float = 0.5   # alpha a carved point must see in every view that sees it
+    scene_box: list = field(default_factory=list)  # [[x0, y0, z0], [x1, y1, z1]]; empty: dataset/cameras
+
+
+@dataclass
+class LossConfig:
+    rgb: float = TABLE1_WEIGHTS["rgb"]
+    ssim: float = TABLE1_WEIGHTS["ssim"]
+    density: float = TABLE1_WEIGHTS["density"]
+    aniso: float = TABLE1_WEIGHTS["aniso"]
+    volume: float = TABLE1_WEIGHTS["volume"]
+    opacity: float = TABLE1_WEIGHTS["opacity"]
+    color: float = TABLE1_WEIGHTS["color"]
+    background: str = "random"     # random | black | white | dataset (see reconstruct.py)
+    blur_start: float = 0.02       # phase 2 starts comparing images blurred by this x image width (sigma)
+
+
+@dataclass
+class DensityConfig:
+    h_factor: float = 2.5          # h = h_factor x particle spacing
+    k: int = 64                    # at most K nearest neighbours within h (paper: K = 64)
+    refresh_every: int = 10        # neighbour lists rebuilt after this many uses
+
+
+@dataclass
+class LRConfig:
+    means: float = 1.6e-4          # x box diagonal per step (3DGS: 1.6e-4 x scene extent)
+    means_final: float = 0.01      # the means' learning rate decays to this fraction by the end
+    log_scales: float = 5e-3
+    quats: float = 1e-3
+    logit_opacity: float = 5e-2
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 1.25e-4
+    features: float = 1e-2         # theta (paper: 1e-2)
+    mlp: float = 1e-4              # Phi (paper: 1e-4)
+    canonical_dynamic: float = 0.1  # factor on the canonical particles' rates in phases 2 and 3
+
+
+@dataclass
+class PhaseConfig:
+    iterations: int = 6000         # total budget; phase caps are fractions of it
+    fractions: list = field(default_factory=lambda: [0.2, 0.45, 0.35])
+    min_fraction: float = 0.25     # a phase runs at least this fraction of its cap
+    plateau_window: int = 400      # iterations
+    plateau_tol: float = 0.005     # relative improvement of the smoothed image loss
+    phase1_reg: float = 0.1        # lambda_a, lambda_v in phase 1 as a fraction of the final ones
+    phase2_density: float = 0.1    # lambda_d reaches this fraction by the end of phase 2
+    time_curriculum: float = 0.5   # phase 2 samples times near the canonical one, widening to the clip over this fraction
+
+
+@dataclass
+class DensifyConfig:
+    enabled: bool = True
+    phases: list = field(default_factory=lambda: [1, 2])
+    start: int = 200
+    every: int = 100
+    stop_fraction: float = 0.8     # no refinement in the last 20% of a phase
+    grad_threshold: float = 6e-5
+    clone_max_scale: float = 0.5
+    prune_opacity: float = 0.005
+    prune_max_scale: float = 3.0
+
+
+@dataclass
+class TrainConfig:
+    seed: int = 0
+    views_per_step: int = 0        # views rendered per decoded time (0: every training view)
+    times_per_step: int = 1        # decoded times per step (phases 2-3)
+    log_every: int = 25
+    eval_every: int = 500          # held-out PSNR (when the dataset has test views)
+    eval_frames: int = 6           # held-out frames evaluated during training
+    checkpoint_every: int = 1000
+    max_bad_steps: int = 20        # consecutive non-finite steps before the run stops
+    time_budget_s: float = 0.0     # stop (and write the result) after this many wall-clock seconds; 0 = none
+
+
+@dataclass
+class ReconConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    density: DensityConfig = field(default_factory=DensityConfig)
+    lr: LRConfig = field(default_factory=LRConfig)
+    phases: PhaseConfig = field(default_factory=PhaseConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def validate(self) -> "ReconConfig":
+        where = "reconstruct config"
+        m, lo, ph = self.model, self.loss, self.phases
+        if m.sh_degree not in (0, 1, 2, 3):
+            raise InputError(where, f"model.sh_degree must be 0-3, got {m.sh_degree}")
+        if m.init not in ("carve", "random"):
+            raise InputError(where, f"model.init must be 'carve' or 'random', got {m.init!r}")
+        if m.init_particles < 1 or m.max_particles < 1:
+            raise InputError(where, "model.init_particles and model.max_particles must be >= 1")
+        if not 0 < m.init_opacity < 1:
+            raise InputError(where, f"model.init_opacity must be in (0, 1), got {m.init_opacity}")
+        if lo.background not in ("random", "black", "white", "dataset"):
+            raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
+        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color"):
+            v = getattr(lo, k)
+            if not (isinstance(v, (int, float)) and v >= 0):
+                raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")
+        if not 0 <= lo.blur_start < 0.5:
+            raise InputError(where, f"loss.blur_start must be in [0, 0.5), got {lo.blur_start}")
+        if lo.rgb + lo.ssim <= 0:
+            raise InputError(where, "loss.rgb + loss.ssim must be positive (nothing ties the particles to the images)")
+        if ph.iterations < 1:
+            raise InputError(where, f"phases.iterations must be >= 1, got {ph.iterations}")
+        if len(ph.fractions) != 3 or any(f < 0 for f in ph.fractions) or sum(ph.fractions) <= 0:
+            raise InputError(where, f"phases.fractions must be 3 non-negative numbers, got {ph.fractions}")
+        if self.density.h_factor <= 0 or self.density.k < 1 or self.density.refresh_every < 1:
+            raise InputError(where, "density.h_factor > 0, density.k >= 1 and density.refresh_every >= 1 required")
+        if self.train.times_per_step < 1 or self.train.views_per_step < 0:
+            raise InputError(where, "train.times_per_step must be >= 1 and train.views_per_step >= 0")
+        if not 0 <= ph.time_curriculum <= 1:
+            raise InputError(where, f"phases.time_curriculum must be in [0, 1], got {ph.time_curriculum}")
+        if self.train.log_every < 1 or self.train.checkpoint_every < 1 or self.train.eval_every < 1:
+            raise InputError(where, "train.log_every, eval_every and checkpoint_every must be >= 1")
+        self.decoder.validate()
+        return self
+
+
+SECTIONS = {f.name: f.type for f in dataclasses.fields(ReconConfig)}
+
+
+def _merge(cfg: ReconConfig, data: dict, where: str) -> None:
+    for sec, values in data.items():
+        if sec not in SECTIONS:
+            raise InputError(where, f"unknown section [{sec}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(values, dict):
+            raise InputError(where, f"[{sec}] must be a table of keys")
+        obj = getattr(cfg, sec)
+        known = {f.name: f for f in dataclasses.fields(obj)}
+        for k, v in values.items():
+            if k not in known:
+                raise InputError(where, f"unknown key {sec}.{k} (known: {', '.join(known)})")
+            cur = getattr(obj, k)
+            if isinstance(cur, bool) and not isinstance(v, bool):
+                raise InputError(where, f"{sec}.{k} must be true or false, got {v!r}")
+            if isinstance(cur, (int, float)) and not isinstance(cur, bool):
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise InputError(where, f"{sec}.{k} must be a number, got {v!r}")
+                if isinstance(cur, int) and not isinstance(v, int):
+                    raise InputError(where, f"{sec}.{k} must be an integer, got {v!r}")
+            if isinstance(cur, str) and not isinstance(v, str):
+                raise InputError(where, f"{sec}.{k} must be a string, got {v!r}")
+            if isinstance(cur, list) and not isinstance(v, list):
+                raise InputError(where, f"{sec}.{k} must be a list, got {v!r}")
+            setattr(obj, k, v)
+
+
+def load_toml(path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "config file does not exist")
+    try:
+        return tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(path, f"not valid TOML ({e})") from None
+
+
+def make_config(preset: str | None = "water", config_file=None, overrides: dict | None = None) -> ReconConfig:
+    cfg = ReconConfig()
+    if preset:
+        if preset not in PRESETS:
+            raise InputError("reconstruct", f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+        p = PRESET_DIR / f"{preset}.toml"
+        _merge(cfg, load_toml(p), str(p))
+    if config_file:
+        _merge(cfg, load_toml(config_file), str(config_file))
+    if overrides:
+        _merge(cfg, overrides, "command line")
+    return cfg.validate()
+
+
+def from_dict(d: dict, where: str = "checkpoint") -> ReconConfig:
+    cfg = ReconConfig()
+    _merge(cfg, d, where)
+    return cfg.validate()
+
+
+__all__ = ["ReconConfig", "make_config", "from_dict", "PRESETS", "PRESET_DIR", "load_toml"]

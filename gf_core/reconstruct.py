@@ -1,0 +1,651 @@
+"""The three-phase GaussFluids trainer (paper Sec. 4.1.2): composes the model (``model``,
+``temporal``), the losses (``losses``), densify/prune (``strategy``) and the renderer.
+
+Phases (each ends when its smoothed image loss stops improving -- the plateau test below -- or
+at its cap, a fraction of the iteration budget):
+1. canonical frame only, 3DGS-style: lambda_d = 0, lambda_a and lambda_v at 10% of their final
+   values; canonical particles only (no decoder).
+2. every frame: random (time, views) samples, the decoder on (theta at lr 1e-2, Phi at 1e-4, the
+   canonical particles at a tenth of their phase-1 rates); lambda_d rises linearly to 10% of its
+   final value.
+3. lambda_a, lambda_v and lambda_d rise linearly to their final values (Table 1), then hold.
+A static scene (one time) has no decoder: phases 2 and 3 refine the canonical particles.
+Ramps span the first ``phases.min_fraction`` of a phase's cap, and the plateau test only runs
+after them, so every ramp completes.
+
+Plateau test: the image loss (lambda_r L1 + lambda_s D-SSIM) is smoothed with an exponential
+moving average (time constant ``plateau_window / 8`` iterations); the phase has plateaued when
+the best smoothed value of the last ``plateau_window`` iterations is not ``plateau_tol``
+(relative) below the best value before them.
+
+Background and alpha: with ``loss.background = "random"`` (default) every step composites the
+ground-truth RGBA over a random colour and renders over the same colour, so colour and alpha
+are both fitted (a transparent pixel cannot be matched by dark particles); "black", "white" and
+"dataset" (the dataset's own background) use a fixed colour. Without alpha, the images are used
+as they are, against the dataset's background.
+
+Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
+grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
+rebuilt after ``density.refresh_every`` uses or whenever the particle set changes; gradients
+flow through the distances of the stored pairs. h = ``density.h_factor`` x particle spacing,
+where spacing = (fluid volume / particle count)^(1/3) (volume from the carved hull, or the box);
+the paper's h = 0.3 is in NeuroFluid's units, about 2-3 of its particle spacings.
+
+Stability: a step whose loss or gradients are not finite is skipped (its gradients dropped) and
+reported; ``train.max_bad_steps`` in a row stop the run with a ``ReconstructionError``.
+Parameters are projected after every step (unit quaternions, bounded scales, positions in the
+box), so no NaN or Inf reaches ``recon.h5``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import losses as L
+from .errors import GFError, InputError
+from .io import atomic_path, write_recon
+from .model import Bounds, FluidModel
+from .neighbors import knn
+from .recon_config import ReconConfig, from_dict
+from .render import render
+from .scene_init import carve, mean_foreground_color, random_in_box, scene_box, spacing_for
+from .strategy import DensifyPrune, ParticleOptimizer
+from .temporal import Decoder, TimeMap
+
+CHECKPOINT = "checkpoint.pt"
+CHECKPOINT_FORMAT = "gaussfluids.checkpoint"
+
+
+class ReconstructionError(GFError):
+    """The run cannot continue (non-finite steps, a resume that does not match, ...)."""
+
+
+# ---- data ---------------------------------------------------------------------------------------------
+@dataclass
+class Images:
+    """Decoded images of one split, on the training device."""
+
+    images: list          # (H, W, C) float32
+    alphas: list          # (H, W) or None
+    cameras: list
+    times: np.ndarray     # seconds
+    view_ids: list
+    background: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def unique_times(self) -> np.ndarray:
+        return np.unique(self.times)
+
+    def at_time(self, t: float) -> list[int]:
+        if not hasattr(self, "_by_time"):
+            self._by_time = {}
+            for i, ti in enumerate(self.times):
+                self._by_time.setdefault(round(float(ti), 9), []).append(i)
+        return list(self._by_time.get(round(float(t), 9), []))
+
+
+def load_images(ds, device, dtype=torch.float32) -> Images:
+    imgs, alphas, cams, times, views = [], [], [], [], []
+    for i in range(len(ds)):
+        img, alpha = ds.load(i)
+        if not np.all(np.isfinite(img)):
+            raise InputError(ds.frames[i].file, "image contains NaN or infinite values")
+        imgs.append(torch.as_tensor(img, dtype=dtype, device=device))
+        alphas.append(None if alpha is None else torch.as_tensor(alpha, dtype=dtype, device=device))
+        rec = ds.frames[i]
+        cams.append(rec.camera)
+        times.append(rec.time)
+        views.append(rec.view_id)
+    bg = torch.as_tensor(np.asarray(ds.background, np.float64)[:ds.channels], dtype=dtype, device=device)
+    return Images(imgs, alphas, cams, np.asarray(times, np.float64), views, bg)
+
+
+def dataset_fingerprint(ds) -> str:
+    """A hash of what the images are (files, sizes, mtimes, cameras, times)."""
+    h = hashlib.sha1()
+    for f in ds.frames:
+        st = os.stat(f.file)
+        h.update(f"{f.file}|{st.st_size}|{st.st_mtime_ns}|{f.time}|{f.view_id}|{f.frame_index}".encode())
+        h.update(np.asarray(f.camera.world_to_camera).tobytes())
+    return h.hexdigest()[:16]
+
+
+def composite(img: torch.Tensor, alpha: torch.Tensor | None, bg: torch.Tensor) -> torch.Tensor:
+    if alpha is None:
+        return img
+    a = alpha[..., None]
+    return img * a + bg.reshape(1, 1, -1) * (1 - a)
+
+
+# ---- the schedule -------------------------------------------------------------------------------------
+def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
+    """The weights of Eq. 11 in ``phase`` (1-3) at ramp progress ``ramp`` in [0, 1]."""
+    lo, ph = cfg.loss, cfg.phases
+    w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color}
+    r = ph.phase1_reg
+    if phase == 1:
+        w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
+    elif phase == 2:
+        w.update(density=ph.phase2_density * lo.density * ramp, aniso=r * lo.aniso, volume=r * lo.volume)
+    else:
+        w.update(density=lo.density * (ph.phase2_density + (1 - ph.phase2_density) * ramp),
+                 aniso=lo.aniso * (r + (1 - r) * ramp), volume=lo.volume * (r + (1 - r) * ramp))
+    return w
+
+
+class Plateau:
+    """Smoothed-loss plateau test (see the module docstring)."""
+
+    def __init__(self, window: int, tol: float):
+        self.window, self.tol = max(int(window), 1), tol
+        self.alpha = min(1.0, 8.0 / self.window)
+        self.ema = None
+        self.history: list[tuple[int, float]] = []
+
+    def update(self, it: int, value: float) -> None:
+        if not math.isfinite(value):
+            return
+        self.ema = value if self.ema is None else (1 - self.alpha) * self.ema + self.alpha * value
+        self.history.append((it, self.ema))
+
+    def reached(self, it: int) -> bool:
+        before = [v for i, v in self.history if i <= it - self.window]
+        recent = [v for i, v in self.history if i > it - self.window]
+        if not before or not recent:
+            return False
+        return min(recent) > min(before) * (1 - self.tol)
+
+    def state(self) -> dict:
+        return {"ema": self.ema, "history": self.history[-2000:]}
+
+    def load(self, st: dict) -> None:
+        self.ema = st["ema"]
+        self.history = [tuple(x) for x in st["history"]]
+
+
+# ---- the trainer -------------------------------------------------------------------------------------
+class Trainer:
+    def __init__(self, cfg: ReconConfig, train_ds, *, test_ds=None, out: Path, device="cpu", log=print,
+                 progress=None):
+        self.cfg = cfg
+        self.out = Path(out)
+        self.device = torch.device(device)
+        self.log = log
+        self.progress = progress
+        self.train = load_images(train_ds, self.device)
+        self.test = load_images(test_ds, self.device) if test_ds is not None and len(test_ds) else None
+        self.channels = train_ds.channels
+        self.fingerprint = dataset_fingerprint(train_ds)
+        times = self.train.unique_times
+        self.time_map = TimeMap(float(times.min()), float(times.max()))
+        self.static = len(times) == 1
+        self.dataset_meta = dict(train_ds.meta)
+        self._train_ds = train_ds
+        tau0 = cfg.decoder.canonical_time
+        t_target = self.time_map.t_min + tau0 * self.time_map.duration
+        self.t_canon = float(times[np.argmin(np.abs(times - t_target))])
+        cfg.decoder.canonical_time = 0.0 if self.static else self.time_map.tau(self.t_canon)
+        g = torch.Generator(device="cpu")
+        g.manual_seed(cfg.train.seed)
+        self.gen = g
+        self.np_rng = np.random.default_rng(cfg.train.seed)
+        self.iteration = 0
+        self.phase = 1
+        self.phase_it = 0
+        self.phase_t0 = 0.0
+        self.elapsed = 0.0
+        self.bad_steps = 0
+        self.total_bad_steps = 0
+        self.nbr_cache: dict = {}
+        self.version = 0
+        self.model = None
+        self.opt = None
+
+    # ---- initialisation ------------------------------------------------------------------------------
+    def initialise(self) -> None:
+        cfg, mc = self.cfg, self.cfg.model
+        canon = self.train.at_time(self.t_canon)
+        lo, hi, src = scene_box(mc.scene_box, self._train_ds, [self.train.cameras[i] for i in canon])
+        self.box_source = src
+        n0 = min(mc.init_particles, mc.max_particles)
+        have_alpha = all(self.train.alphas[i] is not None for i in canon)
+        if mc.init == "carve" and have_alpha:
+            pts, volume = carve(lo, hi, [(self.train.cameras[i], self.train.alphas[i]) for i in canon], n0,
+                                threshold=mc.carve_threshold, seed=cfg.train.seed)
+            self.init_source = "carved"
+        else:
+            if mc.init == "carve":
+                self.log("no alpha in the canonical frame's images: particles start uniform in the scene box")
+            pts, volume = random_in_box(lo, hi, n0, cfg.train.seed), float(np.prod(hi - lo))
+            self.init_source = "random"
+        self.volume = volume
+        self.spacing = spacing_for(volume, n0)
+        self.h = cfg.density.h_factor * self.spacing
+        color = mean_foreground_color([(self.train.images[i].cpu().numpy(),
+                                        None if self.train.alphas[i] is None else self.train.alphas[i].cpu().numpy())
+                                       for i in canon], self.channels)
+        bounds = Bounds.for_box(lo, hi, self.spacing)
+        self.model = FluidModel.from_points(
+            torch.as_tensor(pts, dtype=torch.float32, device=self.device), radius=mc.init_scale * self.spacing,
+            color=color, opacity=mc.init_opacity, sh_degree=mc.sh_degree, channels=self.channels, bounds=bounds,
+            time_map=self.time_map, decoder_cfg=None if self.static else cfg.decoder, seed=cfg.train.seed)
+        self._make_optimizer()
+        self.log(f"start: {len(self.model)} particles ({self.init_source}) in the scene box from {src} "
+                 f"{np.round(lo, 3).tolist()}..{np.round(hi, 3).tolist()}; fluid volume {volume:.3g} m^3, "
+                 f"spacing {self.spacing:.4g} m, h = {self.h:.4g} m; "
+                 f"{'static scene (no decoder)' if self.static else f'{len(self.train.unique_times)} times'}")
+
+    def _make_optimizer(self) -> None:
+        lr = self.cfg.lr
+        lrs = {"means": lr.means * self.model.bounds.extent, "log_scales": lr.log_scales, "quats": lr.quats,
+               "logit_opacity": lr.logit_opacity, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
+        if self.model.decoder is not None:
+            lrs["features"] = lr.features
+        self.base_lrs = lrs
+        self.opt = ParticleOptimizer(self.model, lrs, mlp_lr=lr.mlp)
+        dc = self.cfg.densify
+        self.strategy = DensifyPrune(start=dc.start, every=dc.every, grad_threshold=dc.grad_threshold,
+                                     clone_max_scale=dc.clone_max_scale, prune_opacity=dc.prune_opacity,
+                                     prune_max_scale=dc.prune_max_scale, max_particles=self.cfg.model.max_particles)
+
+    # ---- phases ------------------------------------------------------------------------------------------
+    def phase_cap(self, phase: int) -> int:
+        ph = self.cfg.phases
+        fr = list(ph.fractions)
+        if self.static:  # no dynamic phase: its share goes to the refinement phase
+            fr = [fr[0], 0.5 * fr[1], fr[2] + 0.5 * fr[1]]
+        return int(round(ph.iterations * fr[phase - 1] / sum(fr)))
+
+    def ramp_len(self, phase: int) -> int:
+        return max(1, int(self.cfg.phases.min_fraction * self.phase_cap(phase)))
+
+    def phase_deadline(self, phase: int) -> float:
+        """With a time budget: the wall-clock second by which ``phase`` must end (the budget split
+        like the iterations, time a phase leaves unused going to the next); inf without one."""
+        budget = self.cfg.train.time_budget_s
+        if budget <= 0:
+            return math.inf
+        caps = [self.phase_cap(k) for k in (1, 2, 3)]
+        return budget * sum(caps[:phase]) / max(sum(caps), 1)
+
+    def schedule_progress(self, now: float) -> tuple[float, float]:
+        """(progress of the current phase towards its cap, progress of the whole run), each in
+        [0, 1], by iterations or, with a time budget, by seconds, whichever is further."""
+        phase = self.phase_it / max(self.phase_cap(self.phase), 1)
+        run = self.iteration / max(self.cfg.phases.iterations, 1)
+        budget = self.cfg.train.time_budget_s
+        if budget > 0:
+            span = self.phase_deadline(self.phase) - self.phase_t0
+            phase = max(phase, (now - self.phase_t0) / max(span, 1e-9))
+            run = max(run, now / budget)
+        return min(phase, 1.0), min(run, 1.0)
+
+    def ramp(self, phase_progress: float) -> float:
+        return min(1.0, phase_progress / max(self.cfg.phases.min_fraction, 1e-9))
+
+    def window_width(self, phase_progress: float) -> float:
+        """Half-width (in tau) of the time window phase 2 samples from; 1 = the whole clip."""
+        cur = self.cfg.phases.time_curriculum
+        return 1.0 if (self.phase != 2 or cur <= 0) else min(1.0, phase_progress / cur)
+
+    def sample_times(self, phase_progress: float) -> list[float]:
+        """The times of one step: the canonical one in phase 1 (and for a static scene); else
+        ``train.times_per_step`` frames drawn uniformly from a window around the canonical time
+        that widens to the whole clip over the first ``phases.time_curriculum`` of phase 2 (the
+        decoder learns small motions before large ones)."""
+        if self.phase == 1 or self.static:
+            return [self.t_canon]
+        times = self.train.unique_times
+        tau = np.array([self.time_map.tau(t) for t in times])
+        tau0 = self.cfg.decoder.canonical_time
+        width = max(self.window_width(phase_progress), 2.0 / max(len(times) - 1, 1))
+        pool = np.nonzero(np.abs(tau - tau0) <= width + 1e-9)[0]
+        pick = self.np_rng.choice(pool, size=self.cfg.train.times_per_step, replace=True)
+        return [float(times[k]) for k in pick]
+
+    def _set_lrs(self, run_progress: float) -> None:
+        decay = self.cfg.lr.means_final ** run_progress
+        f = 1.0 if self.phase == 1 else self.cfg.lr.canonical_dynamic
+        for name, lr in self.base_lrs.items():
+            if name == "features":
+                self.opt.set_lr(name, lr if self.phase > 1 else 0.0)
+            else:
+                self.opt.set_lr(name, lr * f * (decay if name == "means" else 1.0))
+        if self.model.decoder is not None:
+            self.opt.set_lr("mlp", self.cfg.lr.mlp if self.phase > 1 else 0.0)
+
+    # ---- one step ----------------------------------------------------------------------------------------
+    def _neighbors(self, key, means: torch.Tensor):
+        ent = self.nbr_cache.get(key)
+        if ent is None or ent[1] != self.version or ent[2] >= self.cfg.density.refresh_every:
+            idx, _ = knn(means.detach(), self.cfg.density.k, self.h, sorted=False)
+            ent = [idx, self.version, 0]
+            self.nbr_cache[key] = ent
+        ent[2] += 1
+        return ent[0]
+
+    def _background(self) -> torch.Tensor:
+        mode = self.cfg.loss.background
+        c = self.channels
+        if mode == "random":  # from a bank drawn once: no host-to-device copy per step
+            if getattr(self, "_bg_bank", None) is None:
+                self._bg_bank = torch.rand(4096, c, generator=torch.Generator().manual_seed(self.cfg.train.seed)
+                                           ).to(self.device)
+            return self._bg_bank[int(self.np_rng.integers(4096))]
+        if mode == "black":
+            return torch.zeros(c, device=self.device)
+        if mode == "white":
+            return torch.ones(c, device=self.device)
+        return self.train.background
+
+    def step(self, phase_progress: float | None = None, run_progress: float | None = None) -> dict:
+        """One optimiser step over ``train.times_per_step`` decoded times x ``train.views_per_step``
+        views each. The loss of Eq. 11 is the mean image loss plus the regularisers (mean over
+        the times); one device synchronisation per step (the finite check and the logged values
+        travel together)."""
+        cfg = self.cfg
+        if phase_progress is None:
+            phase_progress, run_progress = self.schedule_progress(self.elapsed)
+        w = loss_weights(cfg, self.phase, self.ramp(phase_progress))
+        self._set_lrs(run_progress)
+        use_dec = self.phase > 1 and not self.static
+        bg = self._background()
+        times = self.sample_times(phase_progress)
+        blur_frac = self.cfg.loss.blur_start * (1.0 - self.window_width(phase_progress)) if self.phase == 2 else 0.0
+        img_loss, reg = 0.0, {}
+        outs, mses = [], []
+        n_img = 0
+        per_time = []
+        for t in times:
+            idx = self.train.at_time(t)
+            k = cfg.train.views_per_step
+            if 0 < k < len(idx):
+                idx = [idx[i] for i in self.np_rng.choice(len(idx), k, replace=False)]
+            per_time.append((t, idx))
+            n_img += len(idx)
+        for t, idx in per_time:
+            p = self.model.at(t if use_dec else None)
+            for i in idx:
+                cam = self.train.cameras[i]
+                out = render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"], cam, bg,
+                             sh_degree=self.model.sh_degree)
+                target = composite(self.train.images[i], self.train.alphas[i],
+                                   bg if self.train.alphas[i] is not None else self.train.background)
+                li = 0.0
+                if w["rgb"] > 0:
+                    sigma = blur_frac * cam.width
+                    if sigma >= 0.5:  # coarse to fine (see sample_times / loss.blur_start)
+                        li = li + w["rgb"] * L.l1(L.blur(out.color, sigma), L.blur(target, sigma))
+                    else:
+                        li = li + w["rgb"] * L.l1(out.color, target)
+                if w["ssim"] > 0:
+                    li = li + w["ssim"] * L.d_ssim(out.color, target)
+                img_loss = img_loss + li / n_img
+                outs.append((out, cam))
+                mses.append(((out.color.detach() - target) ** 2).mean())
+            terms_t = {}
+            if w["density"] > 0:
+                nbr = self._neighbors(float(t) if use_dec else "canonical", p["means"])
+                terms_t["density"] = w["density"] * L.density_uniformity(L.sph_density_knn(p["means"], nbr, self.h))
+            if w["volume"] > 0:
+                terms_t["volume"] = w["volume"] * L.volume_consistency(p["scales"])
+            if w["aniso"] > 0:
+                terms_t["aniso"] = w["aniso"] * L.anisotropy(p["scales"])
+            if w["opacity"] > 0:
+                terms_t["opacity"] = w["opacity"] * L.opacity_consistency(p["opacities"])
+            if w["color"] > 0:
+                terms_t["color"] = w["color"] * L.color_consistency(p["sh"])
+            for name, v in terms_t.items():
+                reg[name] = reg.get(name, 0.0) + v / len(times)
+        terms = {"image": img_loss, **reg}
+        loss = sum(terms.values())
+        self.opt.zero_grad()
+        loss.backward()
+        grads = [q.grad for g in self.opt.opt.param_groups for q in g["params"] if q.grad is not None]
+        gnorm = torch.stack(torch._foreach_norm(grads)).sum() if grads else loss.new_zeros(())
+        vals = torch.stack([loss.detach() + gnorm] + [v.detach() for v in terms.values()] + mses).tolist()
+        ok = math.isfinite(vals[0])
+        if ok:
+            for out, cam in outs:
+                self.strategy.step_post_backward(out.means2d, out.radii, cam.width, cam.height)
+            self.opt.step()
+            self.model.project_()
+            self.bad_steps = 0
+        else:
+            self.opt.zero_grad()
+            self.bad_steps += 1
+            self.total_bad_steps += 1
+            self.log(f"iteration {self.iteration}: non-finite loss or gradient, step skipped "
+                     f"({self.bad_steps} in a row)")
+            if self.bad_steps >= cfg.train.max_bad_steps:
+                raise ReconstructionError(f"{self.bad_steps} consecutive non-finite steps at iteration "
+                                          f"{self.iteration} (phase {self.phase}); the last checkpoint is "
+                                          f"{self.out / CHECKPOINT}")
+        term_vals = dict(zip(terms, vals[1:1 + len(terms)]))
+        psnrs = [-10 * math.log10(m) if m > 0 else 99.0 for m in vals[1 + len(terms):]]
+        return {"terms": term_vals, "weights": w, "loss": sum(term_vals.values()), "train_psnr": float(np.mean(psnrs)),
+                "t": times[0], "finite": ok}
+
+    # ---- refinement -----------------------------------------------------------------------------------
+    def refine(self) -> dict:
+        dc = self.cfg.densify
+        if not dc.enabled or self.phase not in dc.phases:
+            return {}
+        self.strategy.stop = int(dc.stop_fraction * self.phase_cap(self.phase))
+        rep = self.strategy.refine(self.phase_it, self.model, self.opt, self.spacing, generator=self.gen)
+        if rep and (rep["cloned"] or rep["split"] or rep["pruned"]):
+            self.version += 1
+        return rep
+
+    # ---- evaluation -------------------------------------------------------------------------------------
+    @torch.no_grad()
+    def heldout_psnr(self) -> float | None:
+        if self.test is None:
+            return None
+        times = self.test.unique_times
+        pick = times[np.unique(np.linspace(0, len(times) - 1, min(self.cfg.train.eval_frames, len(times))).round()
+                               .astype(int))]
+        vals = []
+        for t in pick:
+            p = self.model.at(float(t) if self.phase > 1 else None)
+            for i in self.test.at_time(float(t)):
+                out = render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"], self.test.cameras[i],
+                             self.test.background, sh_degree=self.model.sh_degree)
+                target = composite(self.test.images[i], self.test.alphas[i], self.test.background)
+                vals.append(L.psnr(out.color, target))
+        return float(np.mean(vals)) if vals else None
+
+    # ---- checkpoints ------------------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict:
+        m = self.model
+        return {"format": CHECKPOINT_FORMAT, "version": 1, "config": self.cfg.to_dict(),
+                "fingerprint": self.fingerprint, "iteration": self.iteration, "phase": self.phase,
+                "phase_it": self.phase_it, "phase_t0": self.phase_t0, "elapsed": self.elapsed, "spacing": self.spacing, "h": self.h,
+                "volume": self.volume, "box_source": self.box_source, "init_source": self.init_source,
+                "bounds": m.bounds.to_dict(), "time_map": [self.time_map.t_min, self.time_map.t_max],
+                "params": {k: v.detach().cpu() for k, v in m.per_particle().items()},
+                "mlp": None if m.decoder is None else {k: v.cpu() for k, v in m.decoder.layers.state_dict().items()},
+                "optimizer": self.opt.state_dict(), "plateau": self.plateau.state(),
+                "rng_torch": self.gen.get_state(), "rng_numpy": json.dumps(self.np_rng.bit_generator.state),
+                "total_bad_steps": self.total_bad_steps}
+
+    def save_checkpoint(self) -> Path:
+        # neighbour lists are not stored: drop them here too, so that a resumed run rebuilds them
+        # at the same iterations as an uninterrupted one
+        self.nbr_cache.clear()
+        path = self.out / CHECKPOINT
+        with atomic_path(path) as tmp:
+            torch.save(self.checkpoint_state(), tmp)
+        return path
+
+    def load_checkpoint(self, path: Path) -> None:
+        try:
+            st = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # noqa: BLE001 - any unreadable checkpoint gets the same message
+            raise InputError(path, f"cannot read the checkpoint ({type(e).__name__}: {e})") from None
+        if not isinstance(st, dict) or st.get("format") != CHECKPOINT_FORMAT:
+            raise InputError(path, "not a GaussFluids checkpoint")
+        if st["fingerprint"] != self.fingerprint:
+            raise ReconstructionError(f"{path}: the checkpoint was made from other images than the dataset given "
+                                      "(files, times or cameras differ); use --force to start afresh")
+        saved = from_dict(st["config"])
+        if saved.to_dict() != self.cfg.to_dict():
+            diff = [f"{s}.{k}" for s, sec in self.cfg.to_dict().items() for k, v in sec.items()
+                    if saved.to_dict()[s][k] != v]
+            raise ReconstructionError(f"{path}: the checkpoint was made with another configuration "
+                                      f"({', '.join(diff[:6])} differ); resume with the same options or use --force")
+        b = st["bounds"]
+        bounds = Bounds(tuple(b["lo"]), tuple(b["hi"]), b["log_scale_min"], b["log_scale_max"])
+        P = {k: v.to(self.device) for k, v in st["params"].items()}
+        sh = torch.cat([P["sh_dc"], P["sh_rest"]], 1)
+        dec = None
+        if st["mlp"] is not None:
+            dec = Decoder(P["means"].shape[0], self.cfg.decoder, device=self.device)
+            dec.layers.load_state_dict(st["mlp"])
+            dec.features = torch.nn.Parameter(P["features"])
+        self.model = FluidModel(P["means"], P["log_scales"], P["quats"], P["logit_opacity"], sh, bounds=bounds,
+                                time_map=self.time_map, decoder=dec)
+        self.spacing, self.h, self.volume = st["spacing"], st["h"], st["volume"]
+        self.box_source, self.init_source = st["box_source"], st["init_source"]
+        self._make_optimizer()
+        self.opt.load_state_dict(st["optimizer"])
+        self.iteration, self.phase, self.phase_it = st["iteration"], st["phase"], st["phase_it"]
+        self.elapsed = st["elapsed"]
+        self.phase_t0 = st.get("phase_t0", 0.0)
+        self.total_bad_steps = st.get("total_bad_steps", 0)
+        self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
+        self.plateau.load(st["plateau"])
+        self.gen.set_state(st["rng_torch"])
+        self.np_rng.bit_generator.state = json.loads(st["rng_numpy"])
+        self.strategy.reset(len(self.model), self.device)
+
+    # ---- the run ------------------------------------------------------------------------------------------
+    def result_config(self) -> dict:
+        return {"config": self.cfg.to_dict(), "spacing": self.spacing, "h": self.h, "fluid_volume": self.volume,
+                "scene_box_source": self.box_source, "init": self.init_source, "dataset_fingerprint": self.fingerprint,
+                "dataset": str(self._train_ds.root), "canonical_time_s": self.t_canon,
+                "time_source": self.dataset_meta.get("time_source", "seconds"), "channels": self.channels}
+
+    def write_result(self, metrics: dict) -> Path:
+        r = self.model.to_recon(config=self.result_config(), metrics=metrics)
+        return write_recon(self.out / "recon.h5", r)
+
+    def run(self, *, resume: bool = False) -> dict:
+        self.out.mkdir(parents=True, exist_ok=True)
+        ck = self.out / CHECKPOINT
+        if resume and ck.exists():
+            self.load_checkpoint(ck)
+            self.log(f"resumed from {ck}: iteration {self.iteration}, phase {self.phase}, {len(self.model)} particles")
+        else:
+            if resume:
+                self.log(f"--resume: no checkpoint in {self.out}; starting afresh")
+            self.initialise()
+            self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
+            (self.out / "metrics.jsonl").unlink(missing_ok=True)
+        mpath = self.out / "metrics.jsonl"
+        t_start = time.perf_counter() - self.elapsed
+        acc = {"n": 0, "psnr": 0.0, "terms": {}, "loss": 0.0}
+        last_test = None
+        try:
+            with open(mpath, "a") as mf:
+                budget = self.cfg.train.time_budget_s
+                while self.phase <= 3:
+                    if budget > 0 and time.perf_counter() - t_start > budget:
+                        self.log(f"time budget of {budget:g} s reached at iteration {self.iteration} (phase "
+                                 f"{self.phase}); writing the result")
+                        break
+                    cap = self.phase_cap(self.phase)
+                    now = time.perf_counter() - t_start
+                    phase_progress, run_progress = self.schedule_progress(now)
+                    late = now >= self.phase_deadline(self.phase)
+                    ramped = self.ramp(phase_progress) >= 1.0 and \
+                        (self.phase != 2 or phase_progress >= self.cfg.phases.time_curriculum)
+                    if self.phase_it >= cap or late or (ramped and self.plateau.reached(self.phase_it)):
+                        reason = "cap" if self.phase_it >= cap else ("time" if late else "plateau")
+                        self.log(f"phase {self.phase} ends at iteration {self.iteration} ({self.phase_it} "
+                                 f"iterations, {reason}); {len(self.model)} particles")
+                        self.phase += 1
+                        self.phase_it = 0
+                        self.phase_t0 = now
+                        self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
+                        self.strategy.reset(len(self.model), self.device)
+                        self.nbr_cache.clear()
+                        self.elapsed = time.perf_counter() - t_start
+                        self.save_checkpoint()
+                        continue
+                    self.elapsed = now
+                    rec = self.step(phase_progress, run_progress)
+                    self.iteration += 1
+                    self.phase_it += 1
+                    if rec["finite"]:
+                        img = rec["terms"]["image"]
+                        self.plateau.update(self.phase_it, img)
+                        acc["n"] += 1
+                        acc["psnr"] += rec["train_psnr"]
+                        acc["loss"] += rec["loss"]
+                        for k2, v in rec["terms"].items():
+                            acc["terms"][k2] = acc["terms"].get(k2, 0.0) + v
+                    ref = self.refine()
+                    if ref:
+                        self.nbr_cache.clear()
+                    te = None
+                    if self.test is not None and self.iteration % self.cfg.train.eval_every == 0:
+                        te = last_test = self.heldout_psnr()
+                    if self.iteration % self.cfg.train.log_every == 0 or te is not None:
+                        n = max(acc["n"], 1)
+                        line = {"wall_s": round(time.perf_counter() - t_start, 3), "iteration": self.iteration,
+                                "phase": self.phase, "loss": acc["loss"] / n,
+                                "terms": {k2: v / n for k2, v in acc["terms"].items()}, "weights": rec["weights"],
+                                "train_psnr": acc["psnr"] / n, "particles": len(self.model),
+                                "bad_steps": self.total_bad_steps}
+                        if te is not None:
+                            line["test_psnr"] = te
+                        if ref:
+                            line["refine"] = ref
+                        mf.write(json.dumps(line) + "\n")
+                        mf.flush()
+                        if self.progress:
+                            self.progress(line)
+                        acc = {"n": 0, "psnr": 0.0, "terms": {}, "loss": 0.0}
+                    if self.iteration % self.cfg.train.checkpoint_every == 0:
+                        self.elapsed = time.perf_counter() - t_start
+                        self.save_checkpoint()
+        except KeyboardInterrupt:
+            self.elapsed = time.perf_counter() - t_start
+            path = self.save_checkpoint()
+            self.log(f"interrupted at iteration {self.iteration}: checkpoint written to {path}; "
+                     "--resume continues from it")
+            raise
+        self.elapsed = time.perf_counter() - t_start
+        final_test = self.heldout_psnr()
+        metrics = {"iterations": self.iteration, "wall_s": self.elapsed, "particles": len(self.model),
+                   "train_psnr_last": acc["psnr"] / acc["n"] if acc["n"] else None,
+                   "test_psnr": final_test if final_test is not None else last_test,
+                   "bad_steps": self.total_bad_steps}
+        self.save_checkpoint()
+        path = self.write_result(metrics)
+        self.log(f"wrote {path}: {len(self.model)} particles, {self.iteration} iterations in {self.elapsed:.1f} s"
+                 + (f", held-out PSNR {final_test:.2f} dB" if final_test is not None else ""))
+        return metrics
+
+
+def reconstruct(dataset, out, cfg: ReconConfig, *, test_dataset=None, device="cpu", resume=False, log=print,
+                progress=None) -> dict:
+    """Run the three phases on ``dataset`` (a FluidDataset) and write ``out/recon.h5``."""
+    tr = Trainer(cfg, dataset, test_ds=test_dataset, out=out, device=device, log=log, progress=progress)
+    return tr.run(resume=resume)
+
+
+__all__ = ["Trainer", "reconstruct", "ReconstructionError", "loss_weights", "Plateau", "CHECKPOINT"]

@@ -1,0 +1,124 @@
+"""Where the particles start: the scene box, and the visual hull carved from alpha masks.
+
+Scene box, in order: the config's ``model.scene_box``; the dataset's ``scene_box`` (written by
+``gf-cli render-dataset``: the simulation's domain); else derived from the cameras: the point
+nearest to every optical axis (least squares) with a half-size of the smallest half-width that
+any camera sees at that distance.
+
+Carving (space carving, Kutulakos & Seitz 2000): candidate points drawn uniformly in the box are
+kept when they project onto alpha >= threshold in every view that sees them (and at least one
+view sees them). The surviving fraction also estimates the fluid's volume, from which the
+particle spacing follows: spacing = (V / N)^(1/3).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .camera import Camera
+from .errors import InputError
+
+
+def box_from_cameras(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    if not cameras:
+        raise InputError("scene box", "no cameras to derive a scene box from")
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c in cameras:
+        o = c.center
+        d = c.camera_to_world[:3, 2]  # OpenCV: +z looks forward
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ o
+    if np.linalg.matrix_rank(A) < 3:  # one camera, or parallel axes: a point 1 focal distance ahead
+        c = cameras[0]
+        centre = c.center + c.camera_to_world[:3, 2] * np.linalg.norm(c.center)
+    else:
+        centre = np.linalg.solve(A, b)
+    half = min(np.linalg.norm(centre - c.center) * 0.5 * min(c.width / c.fx, c.height / c.fy) for c in cameras)
+    return centre - half, centre + half
+
+
+def scene_box(cfg_box, dataset, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, str]:
+    """(lo, hi, source) of the scene box."""
+    for box, src in ((cfg_box, "config"), (dataset.meta.get("scene_box"), "dataset")):
+        if box:
+            a = np.asarray(box, np.float64)
+            if a.shape != (2, 3) or not np.all(np.isfinite(a)) or np.any(a[1] <= a[0]):
+                raise InputError(src, f"scene_box must be [[x0, y0, z0], [x1, y1, z1]] with x1 > x0 ..., got {box}")
+            return a[0], a[1], src
+    lo, hi = box_from_cameras(cameras)
+    return lo, hi, "cameras"
+
+
+def carve(lo, hi, views: list[tuple[Camera, torch.Tensor]], n: int, *, threshold: float = 0.5,
+          seed: int = 0, max_candidates: int = 4_000_000) -> tuple[np.ndarray, float]:
+    """``n`` points inside the visual hull of the masks ``views`` [(camera, alpha (H, W))], and
+    the hull's volume estimate (m^3). Raises if every mask is empty."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    box_vol = float(np.prod(hi - lo))
+    kept, tried = [], 0
+    batch = max(20 * n, 200_000)
+    while tried < max_candidates:
+        P = lo + (hi - lo) * rng.random((batch, 3))
+        tried += batch
+        inside = np.ones(batch, bool)
+        seen = np.zeros(batch, bool)
+        for cam, alpha in views:
+            a = alpha.detach().cpu().numpy() if isinstance(alpha, torch.Tensor) else np.asarray(alpha)
+            uv, z = cam.project(P)
+            ok = (z > cam.near) & np.isfinite(uv).all(-1)
+            col = np.floor(np.nan_to_num(uv[:, 0], nan=-1)).astype(np.int64)
+            row = np.floor(np.nan_to_num(uv[:, 1], nan=-1)).astype(np.int64)
+            ok &= (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+            seen |= ok
+            val = np.zeros(batch)
+            val[ok] = a[row[ok], col[ok]]
+            inside &= ~ok | (val >= threshold)
+        inside &= seen
+        kept.append(P[inside])
+        if sum(k.shape[0] for k in kept) >= n:
+            break
+    pts = np.concatenate(kept, 0)
+    if pts.shape[0] == 0:
+        raise InputError("reconstruct", "the alpha masks of the canonical frame are empty in every view "
+                                        "(nothing to reconstruct); use model.init = 'random' for footage "
+                                        "without usable alpha")
+    volume = box_vol * pts.shape[0] / tried
+    if pts.shape[0] < n:  # a thin hull: repeat points with a small jitter
+        extra = pts[rng.integers(0, pts.shape[0], n - pts.shape[0])]
+        jit = 0.25 * (volume / n) ** (1 / 3)
+        pts = np.concatenate([pts, extra + rng.normal(scale=jit, size=extra.shape)], 0)
+    else:
+        pts = pts[rng.permutation(pts.shape[0])[:n]]
+    return pts, volume
+
+
+def spacing_for(volume: float, n: int) -> float:
+    return (max(volume, 1e-30) / max(n, 1)) ** (1.0 / 3.0)
+
+
+def random_in_box(lo, hi, n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return lo + (hi - lo) * rng.random((n, 3))
+
+
+def mean_foreground_color(samples, channels: int) -> np.ndarray:
+    """Mean colour where alpha > 0.5 over the given samples (grey 0.5 without alpha)."""
+    acc, cnt = np.zeros(channels), 0
+    for img, alpha in samples:
+        if alpha is None:
+            continue
+        m = alpha > 0.5
+        if m.any():
+            acc += img[m].reshape(-1, channels).sum(0)
+            cnt += int(m.sum())
+    return acc / cnt if cnt else np.full(channels, 0.5)
+
+
+__all__ = ["scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]
