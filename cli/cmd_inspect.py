@@ -11,12 +11,15 @@ def register(sub):
                        description="Validate and summarise a dataset folder (any supported layout), "
                                    "a sim.h5 or a recon.h5. Exits with an error that names the file "
                                    "and the problem if anything is malformed.")
-    p.add_argument("path", type=Path)
+    p.add_argument("path", type=Path, help="a dataset folder, a sim.h5 or a recon.h5")
     p.add_argument("--split", default="train", help="dataset split (default: train)")
-    p.add_argument("--layout", default="auto", choices=["auto", "nerf", "neurofluid", "video"])
-    p.add_argument("--grayscale", action="store_true", help="keep one channel")
-    p.add_argument("--decode", action="store_true", help="also decode every image (full check)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--layout", default="auto", choices=["auto", "nerf", "neurofluid", "video"],
+                   help="dataset layout (default: auto-detected)")
+    p.add_argument("--grayscale", action="store_true", help="keep one channel (default: off)")
+    p.add_argument("--decode", action="store_true",
+                   help="also decode every image (full check; default: headers, the ground truth and "
+                        "each video's last frame only)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (default: a table)")
     p.set_defaults(func=run)
 
 
@@ -35,6 +38,17 @@ def summarise(path: Path, args) -> dict:
                 "views": ds.views, "times": len(ds.times), "time_range": list(ds.time_range),
                 "channels": ds.channels, "resolution": [first.width, first.height],
                 "ground_truth": str(ds.gt_file) if ds.gt_file else None}
+        if ds.gt_file is not None:  # the ground truth is read and validated, not only found
+            from gf_core.io import read_sim
+
+            gt = read_sim(ds.gt_file)
+            info["ground_truth"] = f"{ds.gt_file} ({gt.num_particles} particles, {gt.num_frames} frames)"
+        videos = {}
+        for i, fr in enumerate(ds.frames):
+            if fr.frame_index is not None and fr.frame_index >= videos.get(fr.file, (-1, 0))[0]:
+                videos[fr.file] = (fr.frame_index, i)
+        for path, (last, i) in videos.items():  # a truncated video fails on its last frame
+            ds.load(i)
         if args.decode:
             for i in range(len(ds)):
                 ds.load(i)
@@ -53,7 +67,7 @@ def summarise(path: Path, args) -> dict:
     fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
     if fmt == SIM_FORMAT:
         s = read_sim(path)
-        return {"kind": "sim", "scene": s.scene, "solver": s.solver, "frames": s.num_frames,
+        return {"kind": "sim", "complete": s.complete, "scene": s.scene, "solver": s.solver, "frames": s.num_frames,
                 "particles": s.num_particles, "fps": s.fps, "particle_radius": s.particle_radius,
                 "rest_density": s.rest_density, "viscosity": s.viscosity,
                 "domain": [list(s.domain_min), list(s.domain_max)]}

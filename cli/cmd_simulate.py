@@ -67,7 +67,6 @@ def check_options(args) -> None:
 def run(args) -> int:
     from tqdm import tqdm
 
-    from gf_core.io import write_sim
     from gf_core.sim import simulate
 
     check_options(args)  # before the (possibly long) settle and simulation
@@ -85,12 +84,18 @@ def run(args) -> int:
                         rho_err=f"{100 * last.get('density_err_mean', 0):.3f}%")
         bar.update(1)
 
-    sim, res = simulate(args.scene, solver=args.solver, particles=args.particles, fps=args.fps,
-                        seconds=args.seconds, device=args.device, progress=progress,
-                        settle_seconds=args.settle)
+    try:
+        sim, res = simulate(args.scene, solver=args.solver, particles=args.particles, fps=args.fps,
+                            seconds=args.seconds, device=args.device, progress=progress,
+                            settle_seconds=args.settle, out=args.out)  # written frame by frame
+    except KeyboardInterrupt:
+        if bar:
+            bar.close()
+        if args.out.exists():
+            print(f"interrupted: the frames computed so far are in {args.out} (marked incomplete)", file=sys.stderr)
+        raise
     if bar:
         bar.close()
-    write_sim(args.out, sim)
     wall = time.perf_counter() - t0
     print(f"{args.scene} ({args.solver}): {sim.num_particles} particles, {sim.num_frames} frames at "
           f"{sim.fps:g} fps, {len(res.steps)} steps in {wall:.1f} s; final mean density error "

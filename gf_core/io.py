@@ -148,6 +148,7 @@ class SimData:
     times: np.ndarray | None = None
     config: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)  # per-frame arrays, e.g. density_error_mean (F,)
+    complete: bool = True      # False: a run stopped early; the frames written so far
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, np.float32)
@@ -221,6 +222,73 @@ def write_sim(path, sim: SimData) -> Path:
     return path
 
 
+STAT_KEYS = ("density_err_mean", "density_err_max", "kinetic", "potential")
+
+
+class SimWriter:
+    """A ``sim.h5`` written frame by frame (``gf-cli simulate``): valid and readable after every
+    frame, with ``complete = False`` until ``close(complete=True)``, so a crash or Ctrl-C at frame
+    599 of 600 keeps 599 frames in a file that says it is incomplete."""
+
+    def __init__(self, path, header: SimData, n_particles: int, frames_expected: int):
+        self.path = Path(path)
+        check_sim(header, str(self.path))
+        h5py = _h5()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.f = h5py.File(self.path, "w")
+        f = self.f
+        f.attrs["format"] = SIM_FORMAT
+        f.attrs["version"] = SIM_VERSION
+        for k in ("fps", "particle_radius", "rest_density", "viscosity"):
+            f.attrs[k] = float(getattr(header, k))
+        f.attrs["gravity"] = np.asarray(header.gravity, np.float64)
+        f.attrs["solver"] = header.solver
+        f.attrs["scene"] = header.scene
+        f.attrs["domain_min"] = np.asarray(header.domain_min, np.float64)
+        f.attrs["domain_max"] = np.asarray(header.domain_max, np.float64)
+        f.attrs["config"] = json.dumps(header.config)
+        f.attrs["complete"] = False
+        f.attrs["frames_expected"] = int(frames_expected)
+        chunk = (1, n_particles, 3)
+        for name in ("positions", "velocities"):
+            f.create_dataset(name, shape=(0, n_particles, 3), maxshape=(None, n_particles, 3), dtype=np.float32,
+                             chunks=chunk, compression="gzip" if n_particles * 3 > 30000 else None)
+        f.create_dataset("times", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+        g = f.create_group("stats")
+        for k in STAT_KEYS:
+            g.create_dataset(k, shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+        f.flush()
+        self.frames = 0
+
+    def append(self, positions, velocities, time: float, stats: dict | None = None) -> None:
+        _check_finite("positions", np.asarray(positions), str(self.path))
+        _check_finite("velocities", np.asarray(velocities), str(self.path))
+        f, k = self.f, self.frames
+        for name, a in (("positions", positions), ("velocities", velocities)):
+            f[name].resize(k + 1, axis=0)
+            f[name][k] = np.asarray(a, np.float32)
+        f["times"].resize(k + 1, axis=0)
+        f["times"][k] = float(time)
+        for name in STAT_KEYS:
+            d = f["stats"][name]
+            d.resize(k + 1, axis=0)
+            d[k] = float((stats or {}).get(name, np.nan))
+        self.frames = k + 1
+        f.flush()
+
+    def close(self, *, complete: bool, config: dict | None = None) -> Path:
+        if self.f:
+            if config is not None:
+                self.f.attrs["config"] = json.dumps(config)
+            self.f.attrs["complete"] = bool(complete)
+            self.f.close()
+            self.f = None
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(self.path, 0o666 & ~umask)
+        return self.path
+
+
 def read_sim(path) -> SimData:
     """Read and validate a ``sim.h5``; errors name the file and the problem."""
     with _open_checked(path, SIM_FORMAT, SIM_VERSION) as f:
@@ -240,12 +308,15 @@ def read_sim(path) -> SimData:
         if np.any(dmax <= dmin):
             raise FormatError(path, f"domain_max {dmax.tolist()} must exceed domain_min {dmin.tolist()}")
         stats = {k: np.asarray(v[()]) for k, v in f["stats"].items()} if "stats" in f else {}
+        complete = bool(f.attrs.get("complete", True))
+        if pos.shape[0] == 0:
+            raise FormatError(path, "holds no frames (the simulation stopped before its first frame)")
         return SimData(positions=pos, velocities=vel, fps=fps, particle_radius=radius,
                        rest_density=_attr(f, "rest_density", path),
                        viscosity=_attr(f, "viscosity", path), gravity=tuple(gravity.tolist()),
                        solver=_attr(f, "solver", path, str), domain_min=tuple(dmin.tolist()),
                        domain_max=tuple(dmax.tolist()), scene=_attr(f, "scene", path, str),
-                       times=times, config=_json_attr(f, "config", path), stats=stats)
+                       times=times, config=_json_attr(f, "config", path), stats=stats, complete=complete)
 
 
 def _read_vec_attr(f, name, path) -> np.ndarray:

@@ -133,11 +133,73 @@ def test_lazy_start_is_fast(tmp_path, rng):
     write_png(tmp_path / "img.png", img)
     entries = [frame_entry("img.png", cam, f / 100.0, v) for f in range(100) for v in range(5)]
     (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": entries}))
-    t0 = time.perf_counter()
-    ds = load_dataset(tmp_path)
-    elapsed = time.perf_counter() - t0
+    import cv2
+
+    from gf_core.data import images as images_mod
+
+    calls = []
+    monkey = {"images": images_mod.read_image, "cv2": cv2.imread}
+    images_mod.read_image = lambda *a, **k: calls.append("read_image") or monkey["images"](*a, **k)
+    cv2.imread = lambda *a, **k: calls.append("imread") or monkey["cv2"](*a, **k)
+    try:
+        t0 = time.perf_counter()
+        ds = load_dataset(tmp_path)
+        elapsed = time.perf_counter() - t0
+    finally:
+        images_mod.read_image, cv2.imread = monkey["images"], monkey["cv2"]
     assert len(ds) == 500 and elapsed < 5.0, elapsed
-    assert len(ds._cache) == 0
+    assert len(ds._cache) == 0 and calls == []  # no decode at all, by any path
+
+
+def test_video_frames_are_read_by_seeking_not_whole_videos(tmp_path, rng):
+    """Interleaved multiview access with a cache too small to hold the videos: each request
+    decodes about one frame (it used to decode the whole video each time)."""
+    cams = rig()
+    n = 24
+    imgs = rng.integers(0, 256, size=(VIEWS, n, H, W, 3), dtype=np.uint8)
+    write_video_layout(tmp_path, cams, imgs)
+    ds = load_dataset(tmp_path)
+    ds.cache_bytes = 2 * H * W * 3  # two frames
+    order = [(v, f) for f in range(0, n, 3) for v in range(VIEWS)] + [(v, f) for f in (20, 1, 13) for v in range(VIEWS)]
+    for v, f in order:
+        i = ds.indices(view_id=v, time=f / FPS)[0]
+        img, _ = ds.load(i)
+        assert np.array_equal((img * 255).round().astype(np.uint8), imgs[v, f])
+    assert ds.frames_decoded == len(order)
+
+
+def test_intrinsics_and_fps_are_checked_alike_in_every_layout(tmp_path, rng):
+    cams, imgs = rig(), images(rng, channels=3)
+    write_video_layout(tmp_path / "v", cams, imgs[:, :2], camera_angle_x=3.5)
+    meta = json.loads((tmp_path / "v" / "cameras.json").read_text())
+    for c in meta["cameras"]:
+        c.pop("fl_x"), c.pop("fl_y")
+    (tmp_path / "v" / "cameras.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="camera_angle_x must be a field of view in \\(0, pi\\)"):
+        load_dataset(tmp_path / "v")
+    # NeuroFluid: a non-numeric fps, and an unknown background removal
+    d = tmp_path / "nf" / "view_0"
+    d.mkdir(parents=True)
+    write_png(d / "a.png", imgs[0, 0])
+    (d / "transforms_train.json").write_text(json.dumps({"fps": "fast", "frames": [frame_entry("a.png", cams[0], 0.0, 0)]}))
+    with pytest.raises(InputError, match="'fps' must be a finite number, got 'fast'"):
+        load_dataset(tmp_path / "nf")
+    with pytest.raises(InputError, match="unknown method 'bogus'"):
+        load_dataset(tmp_path / "nf", background_removal="bogus")
+
+
+def test_wrong_size_jpeg_is_caught_without_decoding(tmp_path, rng):
+    import cv2
+
+    cams = rig()
+    cv2.imwrite(str(tmp_path / "a.jpg"), np.zeros((H + 2, W, 3), np.uint8))
+    fr = frame_entry("a.jpg", cams[0], 0.0, 0)
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": [fr]}))
+    with pytest.raises(InputError, match=f"image is {W}x{H + 2} but transforms_train.json says {W}x{H}"):
+        load_dataset(tmp_path)
+    (tmp_path / "a.jpg").write_bytes((tmp_path / "a.jpg").read_bytes()[:20])  # cut before its header
+    with pytest.raises(InputError, match="no frame header"):
+        load_dataset(tmp_path)
 
 
 # ---- bad input: every error names the file and the problem --------------------------------------
@@ -220,3 +282,29 @@ def test_unknown_layout_and_missing_folder(tmp_path):
         load_dataset(tmp_path / "nope")
     with pytest.raises(ValueError, match="unknown dataset layout 'colmap'"):
         load_dataset(tmp_path, layout="colmap")
+
+
+def test_inspect_checks_what_it_claims(tmp_path, rng, capsys):
+    """Without --decode, inspect still catches a truncated gt_sim.h5 and a truncated video."""
+    from gf_cli.main import main
+
+    cams, imgs = rig(), images(rng)
+    write_nerf_dataset(tmp_path / "n", "train", [imgs[v, f] for v in range(VIEWS) for f in range(FRAMES)],
+                       [cams[v] for v in range(VIEWS) for f in range(FRAMES)],
+                       [f / FPS for v in range(VIEWS) for f in range(FRAMES)],
+                       [v for v in range(VIEWS) for f in range(FRAMES)])
+    sim = SimData(positions=np.zeros((2, 3, 3)), velocities=np.zeros((2, 3, 3)), fps=FPS, particle_radius=0.01)
+    write_sim(tmp_path / "n" / "gt_sim.h5", sim)
+    assert main(["inspect", str(tmp_path / "n")]) == 0
+    data = (tmp_path / "n" / "gt_sim.h5").read_bytes()
+    (tmp_path / "n" / "gt_sim.h5").write_bytes(data[: len(data) // 2])
+    assert main(["inspect", str(tmp_path / "n")]) == 2
+    assert "gt_sim.h5" in capsys.readouterr().err
+    write_video_layout(tmp_path / "v", cams, images(rng, channels=3))
+    assert main(["inspect", str(tmp_path / "v")]) == 0
+    video = tmp_path / "v" / "cam1.mkv"
+    data = video.read_bytes()
+    video.write_bytes(data[: int(len(data) * 0.6)])
+    capsys.readouterr()
+    assert main(["inspect", str(tmp_path / "v")]) == 2
+    assert "cam1.mkv" in capsys.readouterr().err

@@ -108,3 +108,41 @@ def test_atomic_write_keeps_old_file(tmp_path, rng, monkeypatch):
         write_sim(path, make_sim(rng, frames=2))
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["sim.h5"]  # no temp files left behind
+
+
+def test_simulate_writes_frames_as_it_goes_and_marks_an_interrupted_file(tmp_path):
+    """Interrupted after a few frames, sim.h5 keeps them and says it is incomplete; a finished
+    run's file is complete and equal to what simulate returned. Results get the normal file mode."""
+    import os
+
+    from gf_core.io import read_sim
+    from gf_core.sim import simulate
+
+    out = tmp_path / "sim.h5"
+    calls = {"n": 0}
+
+    def progress(f, n, t, last):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate("water_cube", particles=300, fps=20, seconds=0.5, out=out, progress=progress)
+    part = read_sim(out)
+    assert not part.complete and part.num_frames == 4 and part.config["stopped_after_frames"] == 4
+    sim, _ = simulate("water_cube", particles=300, fps=20, seconds=0.2, out=out)
+    back = read_sim(out)
+    assert back.complete and np.array_equal(back.positions, sim.positions)
+    assert np.allclose(back.stats["density_err_mean"], sim.stats["density_err_mean"])
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (out.stat().st_mode & 0o777) == (0o666 & ~umask)
+
+
+def test_writer_refuses_what_the_reader_refuses(tmp_path):
+    from gf_core.io import SimData, write_sim
+
+    bad = SimData(positions=np.zeros((1, 2, 3)), velocities=np.zeros((1, 2, 3)), fps=-1, particle_radius=0.01)
+    with pytest.raises(InputError, match="fps must be a positive number"):
+        write_sim(tmp_path / "s.h5", bad)
+    assert not (tmp_path / "s.h5").exists()

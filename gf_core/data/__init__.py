@@ -40,6 +40,8 @@ def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale:
     "normalized" (D-NeRF's [0, 1]) is rescaled by ``duration`` (seconds of the clip) or ``fps``
     (given here or in the dataset); ``meta["time_source"]`` says which was used."""
     path = Path(path)
+    if background_removal not in (None, "difference", "xor"):
+        raise InputError("background_removal", f"unknown method {background_removal!r}; use 'difference' or 'xor'")
     for name, v in (("fps", fps), ("duration", duration)):
         if v is not None and not (isinstance(v, (int, float)) and v > 0 and v == v and v != float("inf")):
             raise InputError(path, f"--{name} must be a positive number, got {v!r}")

@@ -145,20 +145,31 @@ class FluidDataset:
             img = read_image(rec.file)
             self._remember(key, img)
         else:
-            from .video import decode_video
-
-            frames = decode_video(rec.file)
-            for k, fr in enumerate(frames):
-                self._remember((rec.file, k), fr)
-            if rec.frame_index >= len(frames):
-                raise InputError(rec.file, f"frame {rec.frame_index} requested but the video "
-                                           f"decodes to {len(frames)} frames")
-            img = frames[rec.frame_index]
+            img = self._video(rec.file).read(rec.frame_index)
+            self._remember(key, img)
         cam = rec.camera
         if img.shape[0] != cam.height or img.shape[1] != cam.width:
             raise InputError(rec.file, f"image is {img.shape[1]}x{img.shape[0]} but its camera "
                                        f"says {cam.width}x{cam.height}")
         return img
+
+    def _video(self, path: Path):
+        """An open reader per video file (a few at a time: each holds a decoder)."""
+        from .video import VideoReader
+
+        readers = self.__dict__.setdefault("_readers", OrderedDict())
+        r = readers.get(path)
+        if r is None:
+            r = readers[path] = VideoReader(path)
+            while len(readers) > 16:
+                readers.popitem(last=False)[1].close()
+        readers.move_to_end(path)
+        return r
+
+    @property
+    def frames_decoded(self) -> int:
+        """Video frames decoded so far (images count one each)."""
+        return sum(r.frames_decoded for r in self.__dict__.get("_readers", {}).values())
 
     @staticmethod
     def _gray(raw: np.ndarray) -> np.ndarray:

@@ -22,6 +22,37 @@ def png_size(path: Path) -> tuple[int, int] | None:
     return int(w), int(h)
 
 
+def jpeg_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's start-of-frame marker, or None if the file is not a JPEG.
+    Raises InputError for a JPEG cut short before its frame header."""
+    with open(path, "rb") as f:
+        data = f.read(1 << 20)
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            i += 1
+            continue
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7 or marker == 0xFF:
+            i += 1 if marker == 0xFF else 2
+            continue
+        seg = struct.unpack(">H", data[i + 2:i + 4])[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 9 > len(data):
+                break
+            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            return int(w), int(h)
+        i += 2 + seg
+    raise InputError(path, "JPEG file has no frame header (truncated or corrupt)")
+
+
+def image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG or JPEG header without decoding; None for other formats."""
+    return png_size(path) or jpeg_size(path)
+
+
 def read_image(path: Path) -> np.ndarray:
     """Decode an image file to (H, W, C) with C in {1, 3, 4}, channel order RGB(A), dtype kept.
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord
-from .images import png_size
+from .images import image_size
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
 
@@ -64,6 +64,32 @@ def _num(d: dict, key: str, json_path: Path, where: str):
 VIEW_KEYS = ("view_id", "view", "camera_id")
 
 
+def view_id(entry: dict, json_path: Path, where: str, default: int | None = None) -> int | None:
+    """A frame's or camera's view id from ``view_id``, ``view`` or ``camera_id`` (an integer)."""
+    key = next((k for k in VIEW_KEYS if k in entry), None)
+    if key is None:
+        return default
+    raw = entry[key]
+    if isinstance(raw, bool) or not isinstance(raw, (int, float, str)) or not str(raw).strip().lstrip("-").isdigit():
+        raise InputError(json_path, f"{where}: {key!r} must be an integer, got {raw!r}")
+    return int(str(raw).strip())
+
+
+def intrinsics(d: dict, json_path: Path, where: str):
+    """(fl_x, fl_y, camera_angle_x, camera_angle_y, cx, cy) from a transforms frame or a camera
+    entry, each None when absent, validated the same way for every layout."""
+    fx, fy = _num(d, "fl_x", json_path, where), _num(d, "fl_y", json_path, where)
+    angle, angle_y = _num(d, "camera_angle_x", json_path, where), _num(d, "camera_angle_y", json_path, where)
+    if fx is None and fy is None and angle is None and angle_y is None:
+        raise InputError(json_path, f"{where}: no focal length (need 'camera_angle_x' or 'fl_x')")
+    if (fx is not None and fx <= 0) or (fy is not None and fy <= 0):
+        raise InputError(json_path, f"{where}: focal length must be positive (fl_x={fx}, fl_y={fy})")
+    for name, a in (("camera_angle_x", angle), ("camera_angle_y", angle_y)):
+        if a is not None and not 0 < a < math.pi:
+            raise InputError(json_path, f"{where}: {name} must be a field of view in (0, pi) radians, got {a}")
+    return fx, fy, angle, angle_y, _num(d, "cx", json_path, where), _num(d, "cy", json_path, where)
+
+
 def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int | None = None,
                      fps: float | None = None, time_from_index: bool = False,
                      check_sizes: bool = True, known_views: dict | None = None):
@@ -95,7 +121,7 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
         img = resolve_image(root, fr["file_path"], json_path)
         merged = {**meta, **fr}
         w, h = _num(merged, "w", json_path, where), _num(merged, "h", json_path, where)
-        size = png_size(img) if (check_sizes or w is None or h is None) else None
+        size = image_size(img) if (check_sizes or w is None or h is None) else None
         if w is None or h is None:
             if size is None:
                 from .images import read_image
@@ -106,20 +132,9 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
         elif size is not None and size != (int(w), int(h)):
             raise InputError(img, f"image is {size[0]}x{size[1]} but {json_path.name} says "
                                   f"{int(w)}x{int(h)}")
-        fx = _num(merged, "fl_x", json_path, where)
-        fy = _num(merged, "fl_y", json_path, where)
-        angle = _num(merged, "camera_angle_x", json_path, where)
-        angle_y = _num(merged, "camera_angle_y", json_path, where)
-        if fx is None and fy is None and angle is None:
-            raise InputError(json_path, f"{where}: no focal length (need 'camera_angle_x' or 'fl_x')")
-        if (fx is not None and fx <= 0) or (fy is not None and fy <= 0) or \
-                (angle is not None and not 0 < angle < math.pi):
-            raise InputError(json_path, f"{where}: focal length must be positive "
-                                        f"(fl_x={fx}, fl_y={fy}, camera_angle_x={angle})")
+        fx, fy, angle, angle_y, cx, cy = intrinsics(merged, json_path, where)
         try:
-            cam = Camera.from_blender(c2w, int(w), int(h), fx=fx, fy=fy,
-                                      cx=_num(merged, "cx", json_path, where),
-                                      cy=_num(merged, "cy", json_path, where),
+            cam = Camera.from_blender(c2w, int(w), int(h), fx=fx, fy=fy, cx=cx, cy=cy,
                                       camera_angle_x=angle, camera_angle_y=angle_y,
                                       name=str(fr.get("camera_name", "")))
         except InputError as e:
@@ -134,17 +149,13 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
             else:
                 raise InputError(json_path, f"{where}: no 'time' (and no 'frame' with a top-level 'fps')")
         key = np.round(c2w, 6).tobytes()
-        id_key = next((k2 for k2 in VIEW_KEYS if k2 in fr), None)
+        explicit = view_id(fr, json_path, where)
         if fixed_view is not None:
             view = fixed_view
         elif known_views is not None and key in known_views:
             view = known_views[key]  # the same pose as a training camera: the same view
-        elif id_key is not None:
-            raw = fr[id_key]
-            if isinstance(raw, bool) or not isinstance(raw, (int, float, str)) or \
-                    not str(raw).strip().lstrip("-").isdigit():
-                raise InputError(json_path, f"{where}: {id_key!r} must be an integer, got {raw!r}")
-            view = int(str(raw).strip()) + view_offset
+        elif explicit is not None:
+            view = explicit + view_offset
         else:
             view = view_of_pose.setdefault(key, len(view_of_pose) + view_offset)
         mask = fr.get("mask_path")
@@ -255,7 +266,9 @@ def load_neurofluid(root, split: str = "train", *, fps: float | None = None,
         json_path = d / f"transforms_{split}.json"
         meta = read_json(json_path)
         n = len(meta.get("frames") or [])
-        view_fps = fps or (float(meta["fps"]) if "fps" in meta else (max(n - 1, 1)))
+        view_fps = fps or _num(meta, "fps", json_path, "top level") or max(n - 1, 1)
+        if view_fps <= 0:
+            raise InputError(json_path, f"'fps' must be positive, got {view_fps}")
         # NeuroFluid frames carry no time: they are numbered in file order
         recs, meta = parse_transforms(json_path, fixed_view=k, fps=view_fps, time_from_index=True)
         records.extend(recs)

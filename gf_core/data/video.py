@@ -21,7 +21,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord
-from .nerf import _num, read_json
+from .nerf import _background, _num, intrinsics, read_json, view_id
 
 
 def video_info(path: Path) -> tuple[int, int, int, float]:
@@ -65,6 +65,40 @@ def decode_video(path: Path) -> list[np.ndarray]:
     return frames
 
 
+class VideoReader:
+    """Random access to one video's frames without decoding it whole: frames are read in order
+    while requests follow each other, and the decoder seeks (``CAP_PROP_POS_FRAMES``) on a jump,
+    so interleaved multiview access costs about one decoded frame per request, not one video.
+    ``frames_decoded`` counts what was decoded (tests hold it to that)."""
+
+    def __init__(self, path: Path):
+        import cv2
+
+        self.path = Path(path)
+        self.cap = cv2.VideoCapture(str(self.path))
+        if not self.cap.isOpened():
+            raise InputError(self.path, "OpenCV cannot open this video (corrupt or unsupported codec)")
+        self.next = 0
+        self.frames_decoded = 0
+
+    def read(self, k: int) -> np.ndarray:
+        import cv2
+
+        if k != self.next:
+            self.cap.set(cv2.CAP_PROP_POS_FRAMES, int(k))
+            self.next = int(k)
+        ok, fr = self.cap.read()
+        if not ok:
+            raise InputError(self.path, f"frame {k} cannot be decoded (the video is shorter than its container "
+                                        "says, or truncated)")
+        self.frames_decoded += 1
+        self.next = k + 1
+        return np.ascontiguousarray(fr[:, :, ::-1])
+
+    def close(self) -> None:
+        self.cap.release()
+
+
 def write_video(path: Path, frames, fps: float) -> Path:
     """Write RGB uint8 frames losslessly (FFV1 in .mkv/.avi); used by tests and exporters."""
     import cv2
@@ -88,14 +122,7 @@ def write_video(path: Path, frames, fps: float) -> Path:
 
 
 def _camera(entry: dict, w: int, h: int, json_path: Path, where: str) -> Camera:
-    fx, fy = _num(entry, "fl_x", json_path, where), _num(entry, "fl_y", json_path, where)
-    angle = _num(entry, "camera_angle_x", json_path, where)
-    if fx is None and fy is None and angle is None:
-        raise InputError(json_path, f"{where}: no focal length (need 'fl_x' or 'camera_angle_x')")
-    if (fx is not None and fx <= 0) or (fy is not None and fy <= 0) or (angle is not None and angle <= 0):
-        raise InputError(json_path, f"{where}: focal length must be positive (fl_x={fx}, fl_y={fy}, "
-                                    f"camera_angle_x={angle})")
-    cx, cy = _num(entry, "cx", json_path, where), _num(entry, "cy", json_path, where)
+    fx, fy, angle, _, cx, cy = intrinsics(entry, json_path, where)
     shift = 0.5 if entry.get("pixel_center", "half") == "integer" else 0.0
     cx = None if cx is None else cx + shift
     cy = None if cy is None else cy + shift
@@ -140,12 +167,11 @@ def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = Fa
         if not fps or fps <= 0:
             raise InputError(video, "video has no frame rate; give 'fps' in " + json_path.name)
         cam = _camera(entry, w, h, json_path, where)
-        view = int(entry.get("view_id", k))
+        view = view_id(entry, json_path, where, default=k)
         records.extend(FrameRecord(camera=cam, time=t0 + i / fps, view_id=view, file=video,
                                    frame_index=i) for i in range(n))
     ch = 1 if grayscale else 3
-    bg = meta.get("background", 0.0)
-    bg = (float(bg),) * 3 if isinstance(bg, (int, float)) else tuple(float(x) for x in bg)
-    return FluidDataset(frames=records, root=root, channels=ch, background=bg[:ch],
+    bg = _background({"background": meta.get("background", 0.0)}, ch, json_path)
+    return FluidDataset(frames=records, root=root, channels=ch, background=bg,
                         background_removal=background_removal,
                         meta={"layout": "video"})

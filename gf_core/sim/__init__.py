@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..io import SimData
+from ..io import SimData, SimWriter
 from .common import Domain, FrameResult, SimulationError, run_frames, settle
 from .dfsph import DFSPH, DFSPHParams
 from .pbf import PBF, PBFParams
@@ -64,10 +64,12 @@ def prepare_particles(x: np.ndarray, v: np.ndarray, domain: Domain, spacing: flo
 def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
              spacing: float | None = None, fps: float | None = None, seconds: float | None = None,
              device: str = "cpu", progress=None, settle_seconds: float | None = None,
-             settle_seed: int = 0, **overrides) -> tuple[SimData, FrameResult]:
+             settle_seed: int = 0, out=None, **overrides) -> tuple[SimData, FrameResult]:
     """Run a preset scene and return (SimData for sim.h5, the per-step log). ``settle_seconds``
     (default: the scene's, ``Scene.settle``) of damped settling run before t = 0, from the start
-    lattice jittered with ``settle_seed``."""
+    lattice jittered with ``settle_seed``. With ``out`` (a path) every frame is written to that
+    ``sim.h5`` as soon as it is computed (``io.SimWriter``): an interrupted run leaves the frames
+    so far in a file marked incomplete."""
     sc, x, v, radius = initial_state(scene, particles=particles, spacing=spacing)
     fps = sc.fps if fps is None else fps
     seconds = sc.seconds if seconds is None else seconds
@@ -78,15 +80,33 @@ def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
     vt = torch.tensor(v, dtype=torch.float32, device=device)
     if settle_seconds:
         report.update(settle(s, xt, vt, seconds=settle_seconds, seed=settle_seed), settle_seed=settle_seed)
-    res = run_frames(s, xt, vt, fps=fps, seconds=seconds, progress=progress)
     cfg = {"scene": scene, "solver": solver, "spacing": 2 * radius, "device": device,
-           "material": sc.material, **{k: v for k, v in overrides.items()}, **report,
-           "steps": len(res.steps), "wall_seconds": res.steps[-1]["wall_s"] if res.steps else 0.0}
-    sim = SimData(positions=np.stack(res.positions), velocities=np.stack(res.velocities), fps=fps,
-                  particle_radius=radius, rest_density=sc.material_params["rest_density"],
-                  viscosity=sc.material_params["viscosity"], gravity=tuple(float(g) for g in s.g.tolist()),
-                  solver=solver, domain_min=sc.domain.lo, domain_max=sc.domain.hi, scene=scene,
-                  config=cfg, stats=res.stats)
+           "material": sc.material, **{k: v for k, v in overrides.items()}, **report}
+
+    def make(positions, velocities, stats, config):
+        return SimData(positions=positions, velocities=velocities, fps=fps, particle_radius=radius,
+                       rest_density=sc.material_params["rest_density"], viscosity=sc.material_params["viscosity"],
+                       gravity=tuple(float(g) for g in s.g.tolist()), solver=solver, domain_min=sc.domain.lo,
+                       domain_max=sc.domain.hi, scene=scene, config=config, stats=stats)
+
+    writer = None
+    on_frame = None
+    if out is not None:
+        header = make(np.zeros((1, 1, 3)), np.zeros((1, 1, 3)), {}, cfg)
+        writer = SimWriter(out, header, x.shape[0], int(round(seconds * fps)) + 1)
+
+        def on_frame(p, vel, k, m):
+            writer.append(p, vel, k / fps, m)
+    try:
+        res = run_frames(s, xt, vt, fps=fps, seconds=seconds, progress=progress, on_frame=on_frame)
+    except BaseException:
+        if writer is not None:
+            writer.close(complete=False, config={**cfg, "stopped_after_frames": writer.frames})
+        raise
+    cfg.update(steps=len(res.steps), wall_seconds=res.steps[-1]["wall_s"] if res.steps else 0.0)
+    if writer is not None:
+        writer.close(complete=True, config=cfg)
+    sim = make(np.stack(res.positions), np.stack(res.velocities), res.stats, cfg)
     return sim, res
 
 

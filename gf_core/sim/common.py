@@ -267,10 +267,11 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
 
 
 def run_frames(solver, x: torch.Tensor, v: torch.Tensor, *, fps: float, seconds: float,
-               progress=None, measure_every_step: bool = True) -> FrameResult:
+               progress=None, measure_every_step: bool = True, on_frame=None) -> FrameResult:
     """Advance ``solver`` from t = 0 and record frames at k / fps. Logs, per step, the simulated
     time, wall-clock seconds, dt, solver iterations and the independently measured density error
-    and energy, so that error can be plotted against run time."""
+    and energy, so that error can be plotted against run time. ``on_frame(positions, velocities,
+    time, measures)`` is called with each recorded frame (numpy), e.g. to write it at once."""
     if fps <= 0 or seconds < 0:
         raise InputError("simulate", f"fps must be positive and seconds non-negative (got {fps}, {seconds})")
     n_frames = int(round(seconds * fps)) + 1
@@ -282,6 +283,8 @@ def run_frames(solver, x: torch.Tensor, v: torch.Tensor, *, fps: float, seconds:
         res.velocities.append(v.detach().cpu().numpy().copy())
         for k, val in m.items():
             per_frame.setdefault(k, []).append(val)
+        if on_frame is not None:
+            on_frame(res.positions[-1], res.velocities[-1], len(res.positions) - 1, m)
 
     m0 = solver.measure(x, v)
     record_frame(m0)
