@@ -21,12 +21,12 @@ def register(sub):
                        description=__doc__.split("\n\n")[0] + " Steps: simulate the water_sphere scene, "
                        "render a 5-view dataset with Blender, load it back, splat the particles with the "
                        "Gaussian renderer and compare with Blender's masks, write a contact sheet.")
-    p.add_argument("--out", type=Path, default=Path("demo_out"))
-    p.add_argument("--particles", type=int, default=1500)
-    p.add_argument("--seconds", type=float, default=0.5)
-    p.add_argument("--fps", type=float, default=20.0)
-    p.add_argument("--resolution", type=int, default=128)
-    p.add_argument("--samples", type=int, default=16)
+    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
+    p.add_argument("--particles", type=int, default=1500, help="approximate particle count (default 1500)")
+    p.add_argument("--seconds", type=float, default=0.5, help="simulated seconds (default 0.5)")
+    p.add_argument("--fps", type=float, default=20.0, help="frames per second (default 20)")
+    p.add_argument("--resolution", type=int, default=128, help="image size in pixels (default 128)")
+    p.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (default 16)")
     p.set_defaults(func=run)
 
 
@@ -42,7 +42,25 @@ def run(args) -> int:
 
     from . import cmd_render_dataset
 
+    import importlib.util
+    import shutil
+    import sys
+
+    from gf_core.errors import GFError, InputError
+
+    # everything the demo needs, checked before the simulation starts
+    if importlib.util.find_spec("bpy") is None and shutil.which("blender") is None:
+        raise GFError(f"the demo renders with Blender: install the bpy module (pip install 'bpy==5.0.1', which needs "
+                      f"Python 3.11; this is Python {sys.version.split()[0]}) or put `blender` on PATH")
+    for name in ("particles", "resolution", "samples"):
+        if getattr(args, name) < 1:
+            raise InputError(f"--{name}", f"must be >= 1, got {getattr(args, name)}")
+    for name in ("seconds", "fps"):
+        if not getattr(args, name) > 0:
+            raise InputError(f"--{name}", f"must be a positive number, got {getattr(args, name)}")
     out = args.out
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "--out must be a folder, and this is a file")
     out.mkdir(parents=True, exist_ok=True)
     report = {}
     t0 = time.perf_counter()

@@ -135,6 +135,54 @@ def color_consistency(sh: torch.Tensor) -> torch.Tensor:
     return mse_to_mean(sh)
 
 
+# ---- silhouettes (alpha masks; not in the paper) -------------------------------------------------
+def silhouette_distance(alpha: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """(H, W) distance from each pixel to the nearest pixel of the fluid (alpha >= threshold), in
+    units of the image width; 0 on the fluid. Computed once per training image."""
+    import cv2
+    import numpy as np
+
+    a = alpha.detach().cpu().numpy()
+    outside = (a < threshold).astype(np.uint8)
+    if outside.all():  # an empty mask: no pull anywhere
+        return torch.zeros_like(alpha)
+    d = cv2.distanceTransform(outside, cv2.DIST_L2, 5)
+    return torch.as_tensor(d / a.shape[1], dtype=alpha.dtype, device=alpha.device)
+
+
+def hull_distance(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
+    """Mean over particles of the silhouette distance (``silhouette_distance``) at each particle's
+    projection: a pull towards the fluid's silhouette that reaches particles far outside it (the
+    image loss only reaches a particle through pixels it covers). Particles behind the camera add 0."""
+    t = means @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = t[:, 2]
+    front = z > 1e-6
+    zs = torch.where(front, z, torch.ones_like(z))
+    u = intr[0] * t[:, 0] / zs + intr[2]
+    v = intr[1] * t[:, 1] / zs + intr[3]
+    H, W = dist.shape
+    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[None, None]  # pixel edges at +-1
+    d = torch.nn.functional.grid_sample(dist[None, None], grid, mode="bilinear", padding_mode="border",
+                                        align_corners=False)[0, 0, 0]
+    return torch.where(front, d, torch.zeros_like(d)).mean()
+
+
+def silhouette_coverage(means: torch.Tensor, pixels: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor,
+                        width: int) -> torch.Tensor:
+    """The other direction: mean over fluid pixels ``pixels`` (P, 2) (u, v centres; a random subset
+    of the mask) of the distance (x image width) to the nearest particle's projection. It pulls the
+    nearest particles into parts of the silhouette that no particle covers (a spreading pool's
+    rim, a splash)."""
+    if pixels.shape[0] == 0 or means.shape[0] == 0:
+        return means.sum() * 0.0
+    t = means @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = t[:, 2].clamp_min(1e-6)
+    uv = torch.stack([intr[0] * t[:, 0] / z + intr[2], intr[1] * t[:, 1] / z + intr[3]], -1)
+    uv = torch.where((t[:, 2] > 1e-6)[:, None], uv, torch.full_like(uv, 1e9))
+    d = torch.cdist(pixels.to(uv.dtype), uv).min(1).values
+    return d.mean() / width
+
+
 # ---- metrics shared with evaluation ---------------------------------------------------------------
 def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
     mse = float(((pred.detach() - target.detach()) ** 2).mean())
@@ -142,5 +190,5 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
 
 
 __all__ = ["TABLE1_WEIGHTS", "l1", "blur", "ssim", "d_ssim", "poly6", "sph_density", "sph_density_knn", "density_uniformity",
-           "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency",
+           "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency", "silhouette_distance", "hull_distance", "silhouette_coverage",
            "psnr"]

@@ -41,6 +41,7 @@ class LossConfig:
     volume: float = TABLE1_WEIGHTS["volume"]
     opacity: float = TABLE1_WEIGHTS["opacity"]
     color: float = TABLE1_WEIGHTS["color"]
+    hull: float = 1.0              # silhouette pull (datasets with alpha; not in the paper), see reconstruct.py
     background: str = "random"     # random | black | white | dataset (see reconstruct.py)
     blur_start: float = 0.02       # phase 2 starts comparing images blurred by this x image width (sigma)
 
@@ -94,8 +95,8 @@ class DensifyConfig:
 @dataclass
 class TrainConfig:
     seed: int = 0
-    views_per_step: int = 0        # views rendered per decoded time (0: every training view)
-    times_per_step: int = 1        # decoded times per step (phases 2-3)
+    views_per_step: int = 2        # views rendered per decoded time (0: every training view)
+    times_per_step: int = 3        # decoded times per step (phases 2-3)
     log_every: int = 25
     eval_every: int = 500          # held-out PSNR (when the dataset has test views)
     eval_frames: int = 6           # held-out frames evaluated during training
@@ -131,7 +132,7 @@ class ReconConfig:
             raise InputError(where, f"model.init_opacity must be in (0, 1), got {m.init_opacity}")
         if lo.background not in ("random", "black", "white", "dataset"):
             raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
-        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color"):
+        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull"):
             v = getattr(lo, k)
             if not (isinstance(v, (int, float)) and v >= 0):
                 raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")

@@ -22,7 +22,17 @@ Background and alpha: with ``loss.background = "random"`` (default) every step c
 ground-truth RGBA over a random colour and renders over the same colour, so colour and alpha
 are both fitted (a transparent pixel cannot be matched by dark particles); "black", "white" and
 "dataset" (the dataset's own background) use a fixed colour. Without alpha, the images are used
-as they are, against the dataset's background.
+as they are, against the dataset's background. The alpha masks also carve the starting particles
+(``scene_init.carve``) and, with ``loss.hull > 0``, give a silhouette term that is not in the
+paper: in every rendered view, the mean distance from each particle's projection to the mask
+plus the mean distance from 256 random mask pixels to the nearest projection
+(``losses.hull_distance``, ``losses.silhouette_coverage``). The image loss reaches a particle
+only through the pixels it covers; this term reaches particles and uncovered fluid at any
+distance, which large motions need (measured in BENCHMARKS.md, "Reconstruction").
+
+Coarse to fine in time and space (phase 2): the times drawn widen from the canonical one to the
+whole clip over ``phases.time_curriculum`` of the phase, and the L1 term compares images blurred
+with a Gaussian of ``loss.blur_start`` x width that shrinks to none as the window widens.
 
 Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
 grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
@@ -133,7 +143,7 @@ def composite(img: torch.Tensor, alpha: torch.Tensor | None, bg: torch.Tensor) -
 def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
     """The weights of Eq. 11 in ``phase`` (1-3) at ramp progress ``ramp`` in [0, 1]."""
     lo, ph = cfg.loss, cfg.phases
-    w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color}
+    w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color, "hull": lo.hull}
     r = ph.phase1_reg
     if phase == 1:
         w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
@@ -336,6 +346,21 @@ class Trainer:
         ent[2] += 1
         return ent[0]
 
+    def _silhouette(self, i: int):
+        """(distance to the silhouette (H, W), the fluid pixels' centres (P, 2)) of training image i."""
+        cache = self.__dict__.setdefault("_sil", {})
+        if i not in cache:
+            a = self.train.alphas[i]
+            rows, cols = torch.nonzero(a >= 0.5, as_tuple=True)
+            cache[i] = (L.silhouette_distance(a), torch.stack([cols, rows], -1).to(a.dtype) + 0.5)
+        return cache[i]
+
+    def _cam_tensors(self, i: int):
+        cache = self.__dict__.setdefault("_camt", {})
+        if i not in cache:
+            cache[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
+        return cache[i]
+
     def _background(self) -> torch.Tensor:
         mode = self.cfg.loss.background
         c = self.channels
@@ -395,6 +420,14 @@ class Trainer:
                 img_loss = img_loss + li / n_img
                 outs.append((out, cam))
                 mses.append(((out.color.detach() - target) ** 2).mean())
+                if w["hull"] > 0 and self.train.alphas[i] is not None:
+                    vm, K = self._cam_tensors(i)
+                    dist, pix = self._silhouette(i)
+                    sub = pix[torch.as_tensor(self.np_rng.integers(0, max(pix.shape[0], 1), 256),
+                                              device=pix.device)] if pix.shape[0] else pix
+                    hull = L.hull_distance(p["means"], dist, vm, K) + \
+                        L.silhouette_coverage(p["means"], sub, vm, K, cam.width)
+                    reg["hull"] = reg.get("hull", 0.0) + w["hull"] * hull / n_img
             terms_t = {}
             if w["density"] > 0:
                 nbr = self._neighbors(float(t) if use_dec else "canonical", p["means"])

@@ -75,7 +75,13 @@ BAD = [
     (["bench", "render", "--repeats", "0"], "--repeats: must be >= 1"),
     (["bench", "render", "--particles", "1000", "--out", "{sim}/b.json"], "is a file, so it cannot hold"),
     (["bench", "sim", "--solvers", "sph"], "unknown solver 'sph'"),
+    (["bench", "render", "--particles", "2000000000"], "GiB are free"),
+    (["demo", "--fps", "0", "--out", "{tmp}/d"], "--fps: must be a positive number"),
+    (["reconstruct", "{tmp}", "--out", "{tmp}/r", "--iterations", "0"], "--iterations: must be >= 1"),
 ]
+if not __import__("torch").cuda.is_available():
+    BAD.append((["simulate", "water_cube", "--device", "cuda", "--out", "{tmp}/s.h5"],
+                "cuda was asked for but torch sees no CUDA GPU"))
 
 
 @pytest.mark.parametrize("argv, message", BAD, ids=[" ".join(a[:2]) + " " + m[:18] for a, m in BAD])
