@@ -84,6 +84,15 @@ def register(sub):
     g.add_argument("--repeats", type=int, default=50, help="timed repeats, median reported (default 50)")
     g.add_argument("--out", type=Path, default=Path("bench_gpu.json"), help="JSON output (default bench_gpu.json)")
     g.set_defaults(func=run_gpu)
+    d = bsub.add_parser("decoder", help="numpy decoder (the Blender extension's) against the torch one",
+                        description="Times one evaluation of the time-continuous decoder (paper Eq. 4, default "
+                                    "dimensions) for all particles at one time: numpy float32 as the Blender "
+                                    "extension runs it (positions only, and with velocities), and torch on the CPU; "
+                                    "checks that they agree.")
+    d.add_argument("--particles", default="10000,50000", help="comma-separated counts (default 10000,50000)")
+    d.add_argument("--repeats", type=int, default=10, help="timed repeats, median reported (default 10)")
+    d.add_argument("--out", type=Path, default=Path("bench_decoder.json"), help="JSON output (default bench_decoder.json)")
+    d.set_defaults(func=run_decoder)
 
 
 def run_render(args) -> int:
@@ -186,5 +195,21 @@ def run_gpu(args) -> int:
     rec = {"machine": machine(), "renderer": bench_renderer(args.particles, args.resolution, args.repeats),
            "density": bench_density(args.particles, args.k, args.repeats)}
     atomic_write_text(args.out, json.dumps(rec, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def run_decoder(args) -> int:
+    from gf_core.bench.common import machine, table
+    from gf_core.bench.decoder_bench import bench_decoder
+    from gf_core.io import atomic_write_text
+
+    counts = _ints(args.particles)
+    _check_common(args)
+    rows = [bench_decoder(n, args.repeats) for n in counts]
+    print(table(rows, [("particles", "particles", "d"), ("numpy_ms", "numpy ms", ".1f"),
+                       ("numpy_velocity_ms", "numpy+velocity ms", ".1f"), ("torch_ms", "torch ms", ".1f"),
+                       ("ratio_numpy_torch", "numpy/torch", ".2f"), ("max_abs_diff", "max |numpy-torch|", ".1e")]))
+    atomic_write_text(args.out, json.dumps({"machine": machine(), "rows": rows}, indent=1))
     print(f"wrote {args.out}")
     return 0

@@ -23,6 +23,8 @@ def register(sub):
     p.add_argument("--out", type=Path, default=None, help="output folder (default: the run folder)")
     p.add_argument("--fps", type=float, default=None, help="frame rate for normalised-time datasets (default: the dataset's)")
     p.add_argument("--duration", type=float, default=None, help="clip length in seconds for normalised time (default: the dataset's)")
+    p.add_argument("--rest-density", type=float, default=None,
+                   help="kg/m^3 for particle masses in the energies (default: the ground truth's, else 1000)")
     p.set_defaults(func=run)
 
 
@@ -35,6 +37,8 @@ def run(args) -> int:
     from .cmd_reconstruct import check_device
 
     device = check_device(args.device)
+    if args.rest_density is not None and not args.rest_density > 0:
+        raise InputError("--rest-density", f"must be > 0 kg/m^3, got {args.rest_density}")
     recon = args.run / "recon.h5" if args.run.is_dir() else args.run
     if not recon.exists():
         raise InputError(recon, "no reconstruction here (run gf-cli reconstruct first)")
@@ -50,5 +54,6 @@ def run(args) -> int:
         train = load_dataset(ds_path, **kw)
         if (ds_path / "transforms_test.json").exists() or any(ds_path.glob("view_*/transforms_test.json")):
             test = load_dataset(ds_path, split="test", **kw)
-    evaluate(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out)
+    evaluate(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out,
+             rest_density=args.rest_density)
     return 0

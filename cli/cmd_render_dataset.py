@@ -69,19 +69,10 @@ def build_command(args) -> tuple[list[str], str]:
     if blender is not None:
         if not Path(blender).exists():
             raise InputError(blender, "blender executable does not exist")
-        import numpy as np
+        from render_data.render_dataset import particles_npz, render_command
 
-        args.out.mkdir(parents=True, exist_ok=True)
-        npz = args.out / ".gf_particles.npz"
-        np.savez(npz, positions=sim.positions, times=sim.times, fps=sim.fps,
-                 particle_radius=sim.particle_radius, domain_min=np.asarray(sim.domain_min),
-                 domain_max=np.asarray(sim.domain_max), scene=sim.scene, rest_density=sim.rest_density,
-                 gt_file="gt_sim.h5")
-        import hashlib
-
-        digest = hashlib.sha256(Path(args.sim).read_bytes()).hexdigest()
-        cmd = [str(blender), "-b", "--factory-startup", "-noaudio", "-P", str(script_path()), "--",
-               "--sim", str(npz), "--out", str(args.out), "--source-hash", digest] + opts
+        npz, digest = particles_npz(sim, args.sim, args.out)
+        cmd = render_command(blender, npz, args.out, digest, opts, blender=True)
         return cmd, "blender"
     if importlib.util.find_spec("bpy") is None:
         raise GFError("render-dataset needs Blender: give --blender PATH, put `blender` on PATH, or "

@@ -7,10 +7,10 @@ import sys
 
 from gf_core.errors import GFError
 
-from . import (cmd_bench, cmd_demo, cmd_evaluate, cmd_inspect, cmd_reconstruct, cmd_render_dataset,
-               cmd_simulate)
+from . import (cmd_addon, cmd_bench, cmd_demo, cmd_evaluate, cmd_export, cmd_inspect, cmd_reconstruct,
+               cmd_render_dataset, cmd_simulate)
 
-COMMANDS = [cmd_demo, cmd_simulate, cmd_render_dataset, cmd_reconstruct, cmd_evaluate, cmd_inspect, cmd_bench]
+COMMANDS = [cmd_demo, cmd_simulate, cmd_render_dataset, cmd_reconstruct, cmd_evaluate, cmd_export, cmd_inspect, cmd_bench, cmd_addon]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -13,7 +13,7 @@ import torch
 
 from .errors import InputError
 from .io import atomic_write_text, read_recon, read_sim
-from .metrics import density_spread, image_metrics, particle_error
+from .metrics import density_spread, image_metrics, mechanical_energy, particle_error, transport_distance
 from .model import FluidModel
 from .render import render
 
@@ -56,7 +56,7 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device="cpu", out: Path | None = None,
-             log=print) -> dict:
+             rest_density: float | None = None, log=print) -> dict:
     run = Path(run)
     recon_path = run / "recon.h5" if run.is_dir() else run
     out = Path(out) if out else (run if run.is_dir() else run.parent)
@@ -83,10 +83,16 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
         dens.append({"time": float(t), **density_spread(p, h)})
     result["density"] = {"h": h, "per_frame": dens, "std_mean": float(np.mean([d["std"] for d in dens]))}
     log(f"SPH density D_i / mean: standard deviation {result['density']['std_mean']:.3f} (mean over frames, h = {h:.4g} m)")
-    # particles against ground truth
+    result["particle_stats"] = particle_stats(r)
     gt_file = gt_path or (dataset.gt_file if dataset is not None else None)
-    if gt_file:
-        sim = read_sim(gt_file)
+    sim = read_sim(gt_file) if gt_file else None
+    result["energy"] = energies(model, r, times, sim, rest_density)
+    e = result["energy"]
+    log(f"mechanical energy (mass {e['mass_per_particle']:.3g} kg per particle, {e['mass_source']}): "
+        f"total {e['per_frame'][0]['total']:.4g} J at t = {times[0]:.3g} s -> {e['per_frame'][-1]['total']:.4g} J "
+        f"at t = {times[-1]:.3g} s")
+    # particles against ground truth
+    if sim is not None:
         spacing = 2.0 * sim.particle_radius
         rows = []
         for t in times:
@@ -95,7 +101,8 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
                 continue
             with torch.no_grad():
                 p = model.at(float(t))["means"].cpu().numpy()
-            rows.append({"time": float(t), "gt_frame": f, **particle_error(p, sim.positions[f], spacing)})
+            rows.append({"time": float(t), "gt_frame": f, **particle_error(p, sim.positions[f], spacing),
+                         **transport_distance(p, sim.positions[f], spacing)})
         if rows:
             result["particles_vs_gt"] = {
                 "gt": str(gt_file), "spacing": spacing, "per_frame": rows,
@@ -103,11 +110,17 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
                 "recon_to_gt_mean": float(np.mean([x["recon_to_gt"] for x in rows])),
                 "gt_to_recon_max_frame": float(max(x["gt_to_recon"] for x in rows)),
                 "recon_to_gt_max_frame": float(max(x["recon_to_gt"] for x in rows)),
-                "gt_within_1_mean": float(np.mean([x["gt_to_recon_within_1"] for x in rows]))}
+                "gt_within_1_mean": float(np.mean([x["gt_to_recon_within_1"] for x in rows])),
+                "emd_mean": float(np.mean([x["emd"] for x in rows])),
+                "emd_solver": "exact assignment (scipy linear_sum_assignment) of equal random subsamples of "
+                              f"at most {rows[0]['emd_samples']} particles",
+                # what subsampling alone gives: two disjoint random halves of the true particles
+                "emd_floor": _emd_floor(sim.positions[rows[0]["gt_frame"]], spacing)}
             pv = result["particles_vs_gt"]
             log(f"particles vs ground truth (spacing {spacing:.4g} m): true->recon {pv['gt_to_recon_mean']:.3f}, "
                 f"recon->true {pv['recon_to_gt_mean']:.3f} spacings (worst frame {pv['gt_to_recon_max_frame']:.3f} / "
-                f"{pv['recon_to_gt_max_frame']:.3f}); {100 * pv['gt_within_1_mean']:.1f}% of true particles covered")
+                f"{pv['recon_to_gt_max_frame']:.3f}); {100 * pv['gt_within_1_mean']:.1f}% of true particles covered; "
+                f"earth mover's distance {pv['emd_mean']:.3f} spacings (subsampling floor {pv['emd_floor']:.3f})")
     result["training"] = r.metrics
     metrics_file = (run if run.is_dir() else run.parent) / "metrics.jsonl"
     curve = read_metrics(metrics_file) if metrics_file.exists() else []
@@ -130,6 +143,58 @@ def read_metrics(path: Path) -> list[dict]:
             except json.JSONDecodeError:
                 raise InputError(path, f"line {k + 1} is not valid JSON") from None
     return rows
+
+
+def _emd_floor(gt: np.ndarray, spacing: float, samples: int = 1000) -> float:
+    perm = np.random.default_rng(1).permutation(len(gt))
+    half = min(samples, len(gt) // 2)
+    if half == 0:
+        return math.nan
+    return transport_distance(gt[perm[:half]], gt[perm[half:2 * half]], spacing, samples=half)["emd"]
+
+
+def particle_stats(r) -> dict:
+    """Count, radius (geometric-mean Gaussian scale) and opacity statistics (paper Table 3)."""
+    radius = np.exp(np.asarray(r.log_scales, np.float64).mean(1))
+    opacity = 1.0 / (1.0 + np.exp(-np.asarray(r.logit_opacity, np.float64)))
+    out = {"count": int(r.num_particles)}
+    for name, a in (("radius_m", radius), ("opacity", opacity)):
+        out[name] = {"mean": float(a.mean()), "median": float(np.median(a)), "p10": float(np.percentile(a, 10)),
+                     "p90": float(np.percentile(a, 90))}
+    return out
+
+
+def energies(model: FluidModel, r, times, sim, rest_density: float | None) -> dict:
+    """Kinetic, potential and total energy per frame (paper Fig. 5) with the decoder's velocities.
+
+    Mass: the rest density (``rest_density``, else the ground truth's, else water's 1000 kg/m^3)
+    times the fluid volume the reconstruction estimated from the masks, shared equally by its
+    particles (else the rest density times a particle spacing cubed). Potential energy is measured
+    from the ground truth's floor (its domain's lowest z), else the reconstruction's domain floor.
+    The ground truth's energies use its own velocities and rest density x spacing^3 per particle."""
+    rho = float(rest_density or (sim.rest_density if sim is not None else 1000.0))
+    n = max(len(model), 1)
+    if r.config.get("fluid_volume"):
+        mass, src = rho * float(r.config["fluid_volume"]) / n, f"{rho:g} kg/m^3 x the estimated fluid volume " \
+                                                              f"{float(r.config['fluid_volume']):.4g} m^3 / {n} particles"
+    else:
+        sp = float(r.config.get("spacing") or 0.0)
+        mass, src = rho * sp ** 3, f"{rho:g} kg/m^3 x spacing^3"
+    z_ref = float(sim.domain_min[2]) if sim is not None else float(model.bounds.lo[2])
+    rows = []
+    for t in times:
+        with torch.no_grad():
+            a = model.at(float(t), with_velocity=True)
+        row = {"time": float(t), **mechanical_energy(a["means"].cpu().numpy(), a["velocities"].cpu().numpy(),
+                                                     mass, z_ref)}
+        if sim is not None:
+            f = int(np.argmin(np.abs(sim.times - t)))
+            gm = sim.rest_density * (2.0 * sim.particle_radius) ** 3
+            gt = mechanical_energy(sim.positions[f], sim.velocities[f], gm, z_ref)
+            row.update({f"gt_{k}": v for k, v in gt.items()})
+        rows.append(row)
+    return {"mass_per_particle": mass, "mass_source": src, "rest_density": rho, "z_ref": z_ref,
+            "velocity_source": "decoder time derivative (analytic)", "per_frame": rows}
 
 
 def plot_eval(result: dict, curve: list[dict], out: Path) -> list[str]:
@@ -162,11 +227,22 @@ def plot_eval(result: dict, curve: list[dict], out: Path) -> list[str]:
     ax.plot([x["time"] for x in d], [x["std"] for x in d], "o-", ms=3)
     ax.set(xlabel="time (s)", ylabel="std of D_i / mean D", title="SPH density spread (Fig. 4)")
     save(fig, "eval_density.png")
+    if "energy" in result:
+        en = result["energy"]["per_frame"]
+        fig, ax = plt.subplots(1, 3, figsize=(11, 3.2))
+        for k, (key, title) in enumerate((("kinetic", "kinetic"), ("potential", "potential"), ("total", "total"))):
+            ax[k].plot([x["time"] for x in en], [x[key] for x in en], "o-", ms=3, label="reconstruction")
+            if f"gt_{key}" in en[0]:
+                ax[k].plot([x["time"] for x in en], [x[f"gt_{key}"] for x in en], "s--", ms=3, label="ground truth")
+            ax[k].set(xlabel="time (s)", ylabel="energy (J)", title=f"{title} energy")
+        ax[0].legend()
+        save(fig, "eval_energy.png")
     if "particles_vs_gt" in result:
         pv = result["particles_vs_gt"]["per_frame"]
         fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
         ax[0].plot([x["time"] for x in pv], [x["gt_to_recon"] for x in pv], "o-", ms=3, label="true -> recon")
         ax[0].plot([x["time"] for x in pv], [x["recon_to_gt"] for x in pv], "s-", ms=3, label="recon -> true")
+        ax[0].plot([x["time"] for x in pv], [x["emd"] for x in pv], "^-", ms=3, label="earth mover's")
         ax[0].axhline(1.0, color="gray", lw=0.8, ls="--")
         ax[0].set(xlabel="time (s)", ylabel="mean distance (true spacings)", title="particle error")
         ax[0].legend()

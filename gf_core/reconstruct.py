@@ -569,7 +569,10 @@ class Trainer:
         return {"config": self.cfg.to_dict(), "spacing": self.spacing, "h": self.h, "fluid_volume": self.volume,
                 "scene_box_source": self.box_source, "init": self.init_source, "dataset_fingerprint": self.fingerprint,
                 "dataset": str(self._train_ds.root), "canonical_time_s": self.t_canon,
-                "time_source": self.dataset_meta.get("time_source", "seconds"), "channels": self.channels}
+                "time_source": self.dataset_meta.get("time_source", "seconds"), "channels": self.channels,
+                # the training frames' times: exports and the Blender extension sample these by default
+                "frame_times_s": [float(t) for t in self.train.unique_times],
+                "fps": float(self.dataset_meta["fps"]) if self.dataset_meta.get("fps") else None}
 
     def write_result(self, metrics: dict) -> Path:
         r = self.model.to_recon(config=self.result_config(), metrics=metrics)

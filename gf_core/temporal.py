@@ -22,15 +22,14 @@ evaluates the same function; a test holds the two equal.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
+# TimeMap (seconds <-> tau) and the output layout are shared with the numpy twin, which needs no torch
+from .decoder_np import OUTPUTS, TimeMap
 from .errors import InputError
-
-OUTPUTS = {"dp": 3, "ds": 3, "dr": 4}  # position, log-scale, quaternion changes
 
 
 @dataclass
@@ -177,35 +176,6 @@ class Decoder(nn.Module):
                 lyr.weight.copy_(torch.as_tensor(w))
                 lyr.bias.copy_(torch.as_tensor(b))
         return dec
-
-
-@dataclass
-class TimeMap:
-    """Seconds <-> normalised time tau in [0, 1] over the training clip [t_min, t_max]."""
-
-    t_min: float
-    t_max: float
-    policy: str = "clamp"  # times outside the clip: "clamp" (with a warning) or "error"
-
-    def __post_init__(self):
-        if self.policy not in ("clamp", "error"):
-            raise InputError("time map", f"unknown out-of-range policy {self.policy!r} (clamp, error)")
-
-    @property
-    def duration(self) -> float:
-        return max(self.t_max - self.t_min, 0.0)
-
-    def tau(self, t: float) -> float:
-        if self.duration <= 0:
-            return 0.0
-        tau = (float(t) - self.t_min) / self.duration
-        if tau < -1e-9 or tau > 1 + 1e-9:
-            msg = (f"time {t:.6g} s is outside the reconstructed clip [{self.t_min:.6g}, {self.t_max:.6g}] s")
-            if self.policy == "error":
-                raise InputError("decoder", msg)
-            warnings.warn(msg + "; clamped to the clip (the decoder does not extrapolate)", RuntimeWarning,
-                          stacklevel=3)
-        return min(max(tau, 0.0), 1.0)
 
 
 def apply_delta(canonical: dict, delta: dict) -> dict:

@@ -167,6 +167,30 @@ def check_resume(out: Path, ident: dict, force: bool) -> bool:
     return True
 
 
+def particles_npz(sim, sim_path, out: Path) -> tuple[Path, str]:
+    """Hand a simulation to a Python without h5py (a Blender binary): write OUT/.gf_particles.npz
+    from ``sim`` (a validated ``gf_core.io.SimData``) and return it with the sha256 of ``sim_path``,
+    which the render script records as the dataset's source (``--source-hash``)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    npz = out / ".gf_particles.npz"
+    np.savez(npz, positions=sim.positions, times=sim.times, fps=sim.fps,
+             particle_radius=sim.particle_radius, domain_min=np.asarray(sim.domain_min),
+             domain_max=np.asarray(sim.domain_max), scene=sim.scene, rest_density=sim.rest_density,
+             gt_file="gt_sim.h5")
+    return npz, file_sha256(sim_path)
+
+
+def render_command(python_or_blender, npz: Path, out: Path, digest: str, opts: list, *, blender: bool) -> list:
+    """The command that renders ``npz`` into ``out``: a Blender binary runs this script with -P,
+    a Python with the bpy module runs it directly."""
+    script = str(Path(__file__).resolve())
+    args = ["--sim", str(npz), "--out", str(out), "--source-hash", digest] + [str(o) for o in opts]
+    if blender:
+        return [str(python_or_blender), "-b", "--factory-startup", "-noaudio", "-P", script, "--"] + args
+    return [str(python_or_blender), script] + args
+
+
 def write_json(path: Path, data) -> None:
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(json.dumps(data, indent=1))

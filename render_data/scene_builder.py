@@ -195,28 +195,30 @@ def _set_resolution_size(node, voxel_size):
     node.inputs["Voxel Size"].default_value = voxel_size
 
 
-def build_fluid(n_particles: int, radius: float, material: str, *, voxel_scale: float = 0.5,
-                blob: float = 2.5, smooth_iterations: int = 6):
-    """A mesh of ``n_particles`` vertices with a surface-building geometry-nodes modifier."""
-    me = bpy.data.meshes.new("gf_particles")
-    me.vertices.add(int(n_particles))
-    obj = bpy.data.objects.new("gf_fluid", me)
-    bpy.context.scene.collection.objects.link(obj)
-    ng = bpy.data.node_groups.new("gf_surface", "GeometryNodeTree")
+def fluid_node_group(name: str, material, radius: float, *, volume: bool, from_mesh: bool = True,
+                     voxel_scale: float = 0.5, blob: float = 2.5, smooth_iterations: int = 6):
+    """Geometry nodes that turn particles into what is rendered: a volume of spheres of radius
+    ``blob * radius`` (smoke), or that volume's smoothed surface (liquids), with ``material``.
+    ``from_mesh``: the input is a mesh whose vertices are the particles (the dataset renderer);
+    otherwise a point cloud (the Blender extension)."""
+    ng = bpy.data.node_groups.new(name, "GeometryNodeTree")
     ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     nin, nout = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
-    to_points = ng.nodes.new("GeometryNodeMeshToPoints")
-    to_points.inputs["Radius"].default_value = blob * radius
+    points = nin.outputs[0]
+    if from_mesh:
+        to_points = ng.nodes.new("GeometryNodeMeshToPoints")
+        to_points.inputs["Radius"].default_value = blob * radius
+        ng.links.new(nin.outputs[0], to_points.inputs["Mesh"])
+        points = to_points.outputs["Points"]
     to_vol = ng.nodes.new("GeometryNodePointsToVolume")
     to_vol.inputs["Density"].default_value = 1.0
     to_vol.inputs["Radius"].default_value = blob * radius
     _set_resolution_size(to_vol, voxel_scale * radius)
     set_mat = ng.nodes.new("GeometryNodeSetMaterial")
-    set_mat.inputs["Material"].default_value = make_material(material)
-    ng.links.new(nin.outputs[0], to_points.inputs["Mesh"])
-    ng.links.new(to_points.outputs["Points"], to_vol.inputs["Points"])
-    if material == "smoke":
+    set_mat.inputs["Material"].default_value = material
+    ng.links.new(points, to_vol.inputs["Points"])
+    if volume:
         ng.links.new(to_vol.outputs["Volume"], set_mat.inputs["Geometry"])
     else:
         to_mesh = ng.nodes.new("GeometryNodeVolumeToMesh")
@@ -236,6 +238,18 @@ def build_fluid(n_particles: int, radius: float, material: str, *, voxel_scale: 
         ng.links.new(set_pos.outputs["Geometry"], smooth.inputs[0])
         ng.links.new(smooth.outputs[0], set_mat.inputs["Geometry"])
     ng.links.new(set_mat.outputs["Geometry"], nout.inputs[0])
+    return ng
+
+
+def build_fluid(n_particles: int, radius: float, material: str, *, voxel_scale: float = 0.5,
+                blob: float = 2.5, smooth_iterations: int = 6):
+    """A mesh of ``n_particles`` vertices with a surface-building geometry-nodes modifier."""
+    me = bpy.data.meshes.new("gf_particles")
+    me.vertices.add(int(n_particles))
+    obj = bpy.data.objects.new("gf_fluid", me)
+    bpy.context.scene.collection.objects.link(obj)
+    ng = fluid_node_group("gf_surface", make_material(material), radius, volume=material == "smoke",
+                          voxel_scale=voxel_scale, blob=blob, smooth_iterations=smooth_iterations)
     mod = obj.modifiers.new("gf_surface", "NODES")
     mod.node_group = ng
     return obj

@@ -9,7 +9,7 @@ import pytest
 
 from gf_cli.main import COMMANDS, build_parser, main
 
-EXPECTED = {"demo", "simulate", "render-dataset", "reconstruct", "evaluate", "inspect", "bench"}
+EXPECTED = {"demo", "simulate", "render-dataset", "reconstruct", "evaluate", "inspect", "bench", "export", "addon"}
 
 
 def test_help_lists_commands_and_each_has_help(capsys):
@@ -18,7 +18,7 @@ def test_help_lists_commands_and_each_has_help(capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     assert all(c in out for c in EXPECTED)
-    for cmd in EXPECTED | {"bench render", "bench sim", "bench gpu"}:
+    for cmd in EXPECTED | {"bench render", "bench sim", "bench gpu", "bench decoder", "addon build"}:
         with pytest.raises(SystemExit) as e:
             main(cmd.split() + ["--help"])
         assert e.value.code == 0
@@ -78,6 +78,11 @@ BAD = [
     (["bench", "render", "--particles", "2000000000"], "GiB are free"),
     (["demo", "--fps", "0", "--out", "{tmp}/d"], "--fps: must be a positive number"),
     (["reconstruct", "{tmp}", "--out", "{tmp}/r", "--iterations", "0"], "--iterations: must be >= 1"),
+    (["export", "{tmp}", "--format", "ply"], "no such reconstruction"),
+    (["export", "{tmp}", "--format", "ply", "--radius-scale", "0"], "--radius-scale: must be > 0"),
+    (["evaluate", "{tmp}", "--rest-density", "-1"], "--rest-density: must be > 0"),
+    (["addon", "build", "--platforms", "amiga"], "unknown platform(s) ['amiga']"),
+    (["bench", "decoder", "--particles", "0"], "values must be integers >= 1"),
 ]
 if not __import__("torch").cuda.is_available():
     BAD.append((["simulate", "water_cube", "--device", "cuda", "--out", "{tmp}/s.h5"],

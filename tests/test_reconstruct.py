@@ -136,6 +136,14 @@ def test_tiny_scene_reconstruction_meets_psnr_and_chamfer(blob, tmp_path):
     pv = r["particles_vs_gt"]
     assert pv["gt_to_recon_max_frame"] < 1.0 and pv["recon_to_gt_max_frame"] < 1.0, pv
     assert r["test"]["psnr_mean"] > 25.0
+    # physics (paper Fig. 5, Table 3): the blob falls, so kinetic energy grows and potential
+    # energy drops, in the reconstruction (decoder velocities) as in the ground truth
+    en = r["energy"]["per_frame"]
+    assert np.mean([x["kinetic"] for x in en[4:]]) > 2 * en[0]["kinetic"]
+    assert en[-1]["gt_kinetic"] > 2 * en[0]["gt_kinetic"]
+    assert en[-1]["potential"] < en[0]["potential"] and en[-1]["gt_potential"] < en[0]["gt_potential"]
+    assert pv["emd_mean"] < pv["emd_floor"] + 1.0
+    assert r["particle_stats"]["count"] == r["particles"] and 0 < r["particle_stats"]["opacity"]["median"] <= 1
     # the files: metrics.jsonl has the fields, recon.h5 reads back with its decoder
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert {1, 2, 3} <= {x["phase"] for x in lines}

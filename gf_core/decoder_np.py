@@ -1,0 +1,213 @@
+"""The time-continuous decoder (paper Eq. 4) in numpy, for places without torch (the Blender extension).
+
+Same function as ``gf_core.temporal.Decoder`` (a test holds the two equal to 1e-5):
+
+    A^t = A^0 + (tau - tau0) * Phi(theta, gamma(tau))                                   (Eq. 4)
+
+with gamma(tau) = [tau, sin(2^k pi tau), cos(2^k pi tau)], k = 0..L-1, and Phi an MLP with ReLU
+between its layers. Float32, vectorised over particles: the first layer's theta part,
+theta @ W_theta^T, does not depend on time and is computed once per reconstruction; each time then
+costs the hidden layers only, evaluated in blocks of particles so that the intermediate
+activations stay in cache. Velocities dp/dt are forward-mode derivatives along tau (the ReLU
+masks of the forward pass), as in the torch decoder.
+
+Imports numpy only (``io`` for ``from_recon`` needs h5py only when reading a file).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+OUTPUTS = {"dp": 3, "ds": 3, "dr": 4}  # position, log-scale, quaternion changes (as gf_core.temporal)
+
+
+@dataclass
+class TimeMap:
+    """Seconds <-> normalised time tau in [0, 1] over the training clip [t_min, t_max]."""
+
+    t_min: float
+    t_max: float
+    policy: str = "clamp"  # times outside the clip: "clamp" (with a warning) or "error"
+
+    def __post_init__(self):
+        if self.policy not in ("clamp", "error"):
+            raise InputError("time map", f"unknown out-of-range policy {self.policy!r} (clamp, error)")
+
+    @property
+    def duration(self) -> float:
+        return max(self.t_max - self.t_min, 0.0)
+
+    def inside(self, t: float) -> bool:
+        return self.t_min - 1e-9 * max(1.0, self.duration) <= float(t) <= self.t_max + 1e-9 * max(1.0, self.duration)
+
+    def tau(self, t: float, *, warn: bool = True) -> float:
+        if self.duration <= 0:
+            return 0.0
+        tau = (float(t) - self.t_min) / self.duration
+        if tau < -1e-9 or tau > 1 + 1e-9:
+            msg = f"time {t:.6g} s is outside the reconstructed clip [{self.t_min:.6g}, {self.t_max:.6g}] s"
+            if self.policy == "error":
+                raise InputError("decoder", msg)
+            if warn:
+                warnings.warn(msg + "; clamped to the clip (the decoder does not extrapolate)", RuntimeWarning,
+                              stacklevel=3)
+        return min(max(tau, 0.0), 1.0)
+
+
+def encode_time(tau: float, n_freqs: int, include_input: bool = True):
+    """gamma(tau) (D,) and d gamma / d tau (D,), float64."""
+    parts, dparts = [], []
+    if include_input:
+        parts.append([tau])
+        dparts.append([1.0])
+    if n_freqs > 0:
+        w = math.pi * 2.0 ** np.arange(n_freqs)
+        parts += [np.sin(tau * w), np.cos(tau * w)]
+        dparts += [np.cos(tau * w) * w, -np.sin(tau * w) * w]
+    return np.concatenate(parts), np.concatenate(dparts)
+
+
+class NumpyDecoder:
+    """Phi from ``io.DecoderData`` (recon.h5's decoder group), evaluated with numpy float32."""
+
+    def __init__(self, data, *, block: int = 8192):
+        if data.activation != "relu":
+            raise InputError("recon.h5 decoder", f"activation {data.activation!r} is not supported (relu)")
+        if dict(data.outputs) != OUTPUTS:
+            raise InputError("recon.h5 decoder", f"outputs {data.outputs} differ from {OUTPUTS}")
+        enc = data.encoding
+        self.n_freqs = int(enc.get("n_freqs", 0))
+        self.include_input = bool(enc.get("include_input", True))
+        self.canonical_time = float(enc.get("canonical_time", 0.0))
+        feats = np.ascontiguousarray(data.features, np.float32)
+        nf = feats.shape[1]
+        enc_dim = (1 if self.include_input else 0) + 2 * self.n_freqs
+        w0 = np.asarray(data.layers[0][0], np.float32)
+        if w0.shape[1] != nf + enc_dim:
+            raise InputError("recon.h5 decoder", f"first layer takes {w0.shape[1]} inputs; features ({nf}) + "
+                                                 f"encoding ({enc_dim}) differ")
+        self.w_gamma = w0[:, nf:]
+        self.b0 = np.asarray(data.layers[0][1], np.float32)
+        # time-independent part of the first layer, once per reconstruction
+        self.a_theta = feats @ w0[:, :nf].T
+        # later layers stored transposed (in, out) so that rows of particles multiply on the left
+        self.layers = [(np.ascontiguousarray(np.asarray(w, np.float32).T), np.asarray(b, np.float32))
+                       for w, b in data.layers[1:]]
+        self.block = int(block)
+
+    @property
+    def num_particles(self) -> int:
+        return self.a_theta.shape[0]
+
+    def __call__(self, tau: float, *, with_velocity: bool = False) -> dict:
+        """Delta A at normalised time ``tau``: dp (N, 3), ds (N, 3), dr (N, 4) float32; with
+        ``with_velocity`` also 'vp' = d(Delta p)/dtau (N, 3)."""
+        tau = float(tau)
+        gamma, dgamma = encode_time(tau, self.n_freqs, self.include_input)
+        row = (self.w_gamma @ gamma.astype(np.float32) + self.b0).astype(np.float32)
+        drow = (self.w_gamma @ dgamma.astype(np.float32)).astype(np.float32)
+        n = self.num_particles
+        width = sum(OUTPUTS.values())
+        out = np.empty((n, width), np.float32)
+        vel = np.empty((n, 3), np.float32) if with_velocity else None
+        scale = np.float32(tau - self.canonical_time)
+        for s in range(0, n, self.block):
+            h = self.a_theta[s:s + self.block] + row
+            m = len(h)
+            if with_velocity:
+                # forward-mode: the tangent rows dh ride below the activations in the same product
+                x = np.empty((2 * m, h.shape[1]), np.float32)
+                x[m:] = drow
+                for w_t, b in self.layers:
+                    mask = h > 0
+                    np.multiply(h, mask, out=x[:m])
+                    x[m:] *= mask
+                    y = x @ w_t
+                    h = y[:m]
+                    h += b
+                    if y.shape[1] != x.shape[1]:
+                        x = np.empty((2 * m, y.shape[1]), np.float32)
+                    x[m:] = y[m:]
+                dh = x[m:]
+                # d/dtau [(tau - tau0) Phi_p] = Phi_p + (tau - tau0) dPhi_p/dtau
+                vel[s:s + m] = h[:, :3] + scale * dh[:, :3]
+            else:
+                for w_t, b in self.layers:
+                    np.maximum(h, 0, out=h)
+                    h = h @ w_t
+                    h += b
+            out[s:s + m] = h
+        out *= scale
+        res, k = {}, 0
+        for name, w in OUTPUTS.items():
+            res[name] = out[:, k:k + w]
+            k += w
+        if with_velocity:
+            res["vp"] = vel
+        return res
+
+
+def sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float32)))
+
+
+SH_C0 = 0.28209479177387814  # degree-0 spherical-harmonic constant, as the renderer's
+
+
+class ParticleAnimation:
+    """A reconstruction (``io.ReconData``) as particles at any time in seconds: positions, scales,
+    velocities, colours. A static reconstruction (no decoder) gives its canonical particles at
+    every time."""
+
+    def __init__(self, recon, *, policy: str = "clamp", source: str | None = None):
+        self.recon = recon
+        self.source = source  # the file it came from, if any
+        self.time = TimeMap(float(recon.time_min), float(recon.time_max), policy)
+        self.decoder = NumpyDecoder(recon.decoder) if recon.decoder is not None else None
+        self.means = np.ascontiguousarray(recon.means, np.float32)
+        self.log_scales = np.ascontiguousarray(recon.log_scales, np.float32)
+        self.quats = np.ascontiguousarray(recon.quats, np.float32)
+        # the domain the trainer keeps particles in (FluidModel: means clamped to the box, log-scales
+        # to their range), when recon.h5 records it
+        b = (recon.config or {}).get("bounds")
+        self.bounds = None if not b else (np.asarray(b["lo"], np.float32), np.asarray(b["hi"], np.float32),
+                                          np.float32(b["log_scale_min"]), np.float32(b["log_scale_max"]))
+        self.opacity = sigmoid(recon.logit_opacity)
+        # view-independent base colour: the degree-0 SH term, as the renderer evaluates it
+        c = SH_C0 * np.asarray(recon.sh, np.float32)[:, 0, :] + 0.5
+        self.color = np.clip(np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c, 0.0, 1.0)
+
+    @property
+    def num_particles(self) -> int:
+        return self.means.shape[0]
+
+    def at(self, t: float, *, velocity: bool = False, warn: bool = True) -> dict:
+        """positions (N, 3), log_scales (N, 3), quats (N, 4, as stored: not normalised) and, with
+        ``velocity``, velocities (N, 3) in scene units per second, at time ``t`` (seconds; outside
+        the clip: clamped, velocity 0)."""
+        inside = self.time.inside(t)
+        tau = self.time.tau(t, warn=warn)
+        d = self.decoder(tau, with_velocity=velocity) if self.decoder is not None else None
+        if d is None:  # static: the canonical particles at every time
+            pos, ls, q = self.means, self.log_scales, self.quats
+        else:
+            pos, ls, q = self.means + d["dp"], self.log_scales + d["ds"], self.quats + d["dr"]
+        if self.bounds is not None:
+            lo, hi, smin, smax = self.bounds
+            pos = np.minimum(np.maximum(pos, lo), hi)
+            ls = np.clip(ls, smin, smax)
+        out = {"positions": pos, "log_scales": ls, "quats": q}
+        if velocity:
+            if d is None or self.time.duration <= 0 or not inside:
+                out["velocities"] = np.zeros_like(self.means)
+            else:
+                out["velocities"] = d["vp"] / np.float32(self.time.duration)
+        return out
+
+__all__ = ["NumpyDecoder", "ParticleAnimation", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]

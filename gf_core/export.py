@@ -1,0 +1,209 @@
+"""Exports of a reconstruction for other tools (paper Sec. 4.3; ``gf-cli export``).
+
+- ``ply``: the Gaussians at one time as a 3DGS PLY (binary little-endian; the properties common
+  3DGS viewers read: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3, with the
+  activations 3DGS expects: logit opacity, log scales, quaternion w x y z, SH coefficients with
+  f_rest channel-major). Grayscale reconstructions are written with their channel in all three.
+- ``particles``: per frame a PLY of points: x y z vx vy vz radius opacity (velocities from the
+  decoder's time derivative, m/s).
+- ``vdb``: per frame an OpenVDB float grid ``density`` (``gf_core.caches``).
+- ``usd``: one USD file of points with time samples (``gf_core.caches``).
+
+Times: by default the reconstruction's training frames (``frame_times_s`` in recon.h5), else a
+grid at ``fps`` over the clip; ``--fps`` resamples the clip (the decoder is continuous).
+Numpy only (the decoder is ``gf_core.decoder_np``); pxr/openvdb for usd/vdb.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .decoder_np import ParticleAnimation
+from .errors import FormatError, InputError
+from .io import atomic_path
+
+FORMATS = ("ply", "particles", "vdb", "usd")
+
+
+# ---- PLY (binary little-endian, float32 properties) ------------------------------------------------
+def write_ply(path, columns: dict) -> Path:
+    """A vertex element whose float32 properties are ``columns`` (name -> (N,) array), in order."""
+    names = list(columns)
+    n = len(next(iter(columns.values()))) if columns else 0
+    data = np.empty((n, len(names)), "<f4")
+    for k, name in enumerate(names):
+        col = np.asarray(columns[name], np.float32)
+        if col.shape != (n,):
+            raise ValueError(f"PLY column {name} has shape {col.shape}, expected ({n},)")
+        data[:, k] = col
+    header = ["ply", "format binary_little_endian 1.0", "comment GaussFluids", f"element vertex {n}"]
+    header += [f"property float {name}" for name in names] + ["end_header"]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(data.tobytes())
+    return path
+
+
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
+              "char": "i1", "int8": "i1", "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
+              "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4"}
+
+
+def read_ply(path) -> dict:
+    """The vertex element of a binary little-endian PLY as {property: (N,) array}."""
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise FormatError(path, "not a PLY file (no 'ply' magic or no end_header)")
+    body_start = raw.index(b"\n", end) + 1
+    lines = raw[:end].decode("ascii", "replace").splitlines()
+    if "format binary_little_endian 1.0" not in [ln.strip() for ln in lines]:
+        raise FormatError(path, "only binary little-endian PLY files are read")
+    fields, n, in_vertex, offset = [], None, False, 0
+    for ln in lines:
+        parts = ln.split()
+        if parts[:1] == ["element"]:
+            if in_vertex:
+                break  # the vertex element comes first in every file we read
+            in_vertex = parts[1] == "vertex"
+            if not in_vertex:
+                raise FormatError(path, f"expected the vertex element first, got {parts[1]!r}")
+            n = int(parts[2])
+        elif parts[:1] == ["property"] and in_vertex:
+            if parts[1] == "list" or parts[1] not in _PLY_TYPES:
+                raise FormatError(path, f"unsupported property {' '.join(parts[1:])!r}")
+            fields.append((parts[2], _PLY_TYPES[parts[1]]))
+    if n is None:
+        raise FormatError(path, "no vertex element")
+    dt = np.dtype(fields)
+    if len(raw) - body_start < n * dt.itemsize:
+        raise FormatError(path, f"truncated: {n} vertices need {n * dt.itemsize} bytes, "
+                                f"{len(raw) - body_start} present")
+    arr = np.frombuffer(raw, dt, count=n, offset=body_start)
+    return {name: arr[name].copy() for name, _ in fields}
+
+
+# ---- 3DGS layout --------------------------------------------------------------------------------
+def gaussians_to_ply_columns(means, log_scales, quats, logit_opacity, sh) -> dict:
+    n, k, c = sh.shape
+    if c == 1:  # grayscale: the same coefficients in R, G and B
+        sh = np.repeat(sh, 3, axis=2)
+    cols = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2],
+            "nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n)}
+    for ch in range(3):
+        cols[f"f_dc_{ch}"] = sh[:, 0, ch]
+    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)  # channel-major, as 3DGS
+    for j in range(rest.shape[1]):
+        cols[f"f_rest_{j}"] = rest[:, j]
+    cols["opacity"] = logit_opacity
+    for j in range(3):
+        cols[f"scale_{j}"] = log_scales[:, j]
+    for j in range(4):
+        cols[f"rot_{j}"] = quats[:, j]
+    return cols
+
+
+def ply_columns_to_gaussians(cols: dict, where="PLY") -> dict:
+    """Inverse of ``gaussians_to_ply_columns`` (any 3DGS PLY): means, log_scales, quats,
+    logit_opacity, sh (N, K, 3)."""
+    need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [f"scale_{j}" for j in range(3)] + \
+        [f"rot_{j}" for j in range(4)]
+    missing = [k for k in need if k not in cols]
+    if missing:
+        raise FormatError(where, f"not a 3DGS PLY: missing properties {missing}")
+    n = len(cols["x"])
+    n_rest = len([k for k in cols if k.startswith("f_rest_")])
+    if n_rest % 3 or int(round(np.sqrt(n_rest // 3 + 1))) ** 2 != n_rest // 3 + 1:
+        raise FormatError(where, f"{n_rest} f_rest properties do not make an SH degree")
+    k = n_rest // 3 + 1
+    sh = np.zeros((n, k, 3), np.float32)
+    for ch in range(3):
+        sh[:, 0, ch] = cols[f"f_dc_{ch}"]
+    if k > 1:
+        rest = np.stack([cols[f"f_rest_{j}"] for j in range(n_rest)], 1).reshape(n, 3, k - 1)
+        sh[:, 1:, :] = np.transpose(rest, (0, 2, 1))
+    return {"means": np.stack([cols["x"], cols["y"], cols["z"]], 1),
+            "log_scales": np.stack([cols[f"scale_{j}"] for j in range(3)], 1),
+            "quats": np.stack([cols[f"rot_{j}"] for j in range(4)], 1),
+            "logit_opacity": np.asarray(cols["opacity"]), "sh": sh}
+
+
+# ---- times ----------------------------------------------------------------------------------------
+def export_times(recon, *, frames: slice | None = None, fps: float | None = None) -> list[float]:
+    """Seconds to export: the training frames (or a grid at ``fps``), sliced by ``frames``."""
+    t0, t1 = float(recon.time_min), float(recon.time_max)
+    if fps is not None:
+        if not fps > 0:
+            raise InputError("--fps", f"must be > 0, got {fps}")
+        times = list(t0 + np.arange(int(np.floor((t1 - t0) * fps + 1e-6)) + 1) / fps)
+    else:
+        times = [float(t) for t in (recon.config or {}).get("frame_times_s") or []]
+        if not times:
+            f = (recon.config or {}).get("fps") or 30.0
+            times = list(t0 + np.arange(int(np.floor((t1 - t0) * f + 1e-6)) + 1) / f)
+    if recon.decoder is None:
+        times = times[:1]  # a static reconstruction has one state
+    sel = times[frames] if frames is not None else times
+    if not sel:
+        raise InputError("--frames", f"selects none of the {len(times)} frames")
+    return sel
+
+
+# ---- the exports ----------------------------------------------------------------------------------
+def export_ply(anim: ParticleAnimation, t: float, path) -> Path:
+    g = anim.at(t, warn=True)
+    r = anim.recon
+    return write_ply(path, gaussians_to_ply_columns(g["positions"], g["log_scales"], g["quats"],
+                                                    r.logit_opacity, np.asarray(r.sh, np.float32)))
+
+
+def particle_radii(log_scales, radius_scale: float = 1.0):
+    """A point radius per particle: ``radius_scale`` x the geometric mean of its Gaussian scales."""
+    return radius_scale * np.exp(np.asarray(log_scales, np.float64).mean(1))
+
+
+def export_particles(anim: ParticleAnimation, times, out_dir, radius_scale: float = 1.0) -> list[Path]:
+    out = []
+    for k, t in enumerate(times):
+        g = anim.at(t, velocity=True, warn=True)
+        p, v = g["positions"], g["velocities"]
+        out.append(write_ply(Path(out_dir) / f"particles_{k:05d}.ply", {
+            "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2],
+            "radius": particle_radii(g["log_scales"], radius_scale), "opacity": anim.opacity}))
+    return out
+
+
+def export_vdb(anim: ParticleAnimation, times, out_dir, *, voxel: float | None = None,
+               radius_scale: float = 1.0) -> list[Path]:
+    from .caches import density_grid, write_vdb_density
+
+    out = []
+    for k, t in enumerate(times):
+        g = anim.at(t, warn=True)
+        sig = particle_radii(g["log_scales"], radius_scale)
+        vx = voxel or 0.5 * float(np.median(sig))
+        dense, lo = density_grid(g["positions"], sig, anim.opacity, vx)
+        out.append(Path(write_vdb_density(Path(out_dir) / f"density_{k:05d}.vdb", dense, lo, vx)))
+    return out
+
+
+def export_usd(anim: ParticleAnimation, times, path, *, fps: float, radius_scale: float = 1.0) -> Path:
+    """Time code k = the k-th exported time; ``fps`` time codes per second."""
+    from .caches import write_usd_points
+
+    def samples():
+        for k, t in enumerate(times):
+            g = anim.at(t, velocity=True, warn=True)
+            yield k, g["positions"], particle_radii(g["log_scales"], radius_scale), g["velocities"]
+
+    return Path(write_usd_points(path, samples(), fps=fps, start=0, end=len(times) - 1,
+                                 metadata={"times_s": [float(t) for t in times]}))
+
+
+__all__ = ["FORMATS", "write_ply", "read_ply", "gaussians_to_ply_columns", "ply_columns_to_gaussians",
+           "export_times", "export_ply", "export_particles", "export_vdb", "export_usd", "particle_radii"]

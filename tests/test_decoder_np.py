@@ -1,0 +1,107 @@
+"""The numpy decoder (the Blender extension's) equals the torch decoder; time mapping; no torch."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from gf_core.decoder_np import NumpyDecoder, ParticleAnimation, TimeMap
+from gf_core.errors import InputError
+from gf_core.io import ReconData, read_recon, write_recon
+from gf_core.temporal import Decoder, DecoderConfig
+
+
+def trained_like(n, seed=0, **cfg):
+    """A decoder with non-zero weights everywhere (as after training)."""
+    torch.manual_seed(seed)
+    dec = Decoder(n, DecoderConfig(**cfg))
+    with torch.no_grad():
+        dec.features.normal_(0.0, 1.0)
+        dec.layers[-1].weight.normal_(0.0, 0.02)
+        dec.layers[-1].bias.normal_(0.0, 0.01)
+    return dec
+
+
+@pytest.mark.parametrize("n", [1, 7, 300, 20000])
+@pytest.mark.parametrize("cfg", [{}, {"canonical_time": 0.4, "n_freqs": 3, "hidden_layers": 2, "hidden_width": 32},
+                                 {"include_input": False, "feature_dim": 8}])
+def test_numpy_decoder_equals_torch(n, cfg):
+    dec = trained_like(n, **cfg)
+    nd = NumpyDecoder(dec.to_data(), block=4096)
+    for tau in (0.0, 0.13, 0.4, 0.77, 1.0):
+        with torch.no_grad():
+            ref = dec(tau, with_velocity=True)
+        got = nd(tau, with_velocity=True)
+        for k in ("dp", "ds", "dr"):
+            assert got[k].dtype == np.float32
+            np.testing.assert_allclose(got[k], ref[k].numpy(), rtol=0, atol=1e-5, err_msg=f"{k} at tau {tau}")
+        # d/dtau has a kink where a ReLU input crosses 0: rounding may put a rare particle on the
+        # other side; all others agree to float32 precision
+        dv = np.abs(got["vp"] - ref["vp"].numpy()).max(1)
+        assert np.sum(dv >= 1e-4) <= max(1, n // 1000), (tau, dv.max())
+
+
+def test_velocity_is_the_time_derivative():
+    """The analytic velocity against central differences of the same decoder in float64."""
+    dec = trained_like(50, canonical_time=0.2)
+    nd = NumpyDecoder(dec.to_data())
+    dec64 = Decoder.from_data(dec.to_data(), dtype=torch.float64)
+    for tau in (0.1, 0.5, 0.9):
+        e = 1e-6
+        with torch.no_grad():
+            fd = ((dec64(tau + e)["dp"] - dec64(tau - e)["dp"]) / (2 * e)).numpy()
+        dv = np.abs(nd(tau, with_velocity=True)["vp"] - fd).max(1)
+        # a ReLU kink inside [tau - e, tau + e] may spoil one particle
+        assert np.sum(dv > 1e-4 * (1 + np.abs(fd).max(1))) <= 1, dv.max()
+
+
+def make_recon(n=40, static=False, t=(0.0, 0.5)):
+    rng = np.random.default_rng(1)
+    dec = None if static else trained_like(n).to_data()
+    return ReconData(means=rng.normal(0, 0.1, (n, 3)).astype(np.float32),
+                     log_scales=np.full((n, 3), np.log(0.02), np.float32),
+                     quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32),
+                     logit_opacity=np.zeros(n, np.float32),
+                     sh=rng.normal(0, 1, (n, 4, 3)).astype(np.float32), time_min=t[0], time_max=t[1], decoder=dec)
+
+
+def test_particle_animation_seconds_clamp_and_static(tmp_path):
+    write_recon(tmp_path / "r.h5", make_recon())
+    r = read_recon(tmp_path / "r.h5")
+    anim = ParticleAnimation(r)
+    dec = Decoder.from_data(r.decoder)
+    a = anim.at(0.25, velocity=True)
+    with torch.no_grad():
+        ref = dec(0.5, with_velocity=True)
+    np.testing.assert_allclose(a["positions"], r.means + ref["dp"].numpy(), atol=1e-5)
+    np.testing.assert_allclose(a["velocities"], ref["vp"].numpy() / 0.5, atol=1e-4)
+    # outside the clip: clamped to its end with a warning, velocity 0
+    with pytest.warns(RuntimeWarning, match="outside the reconstructed clip"):
+        late = anim.at(0.9, velocity=True)
+    np.testing.assert_allclose(late["positions"], anim.at(0.5)["positions"])
+    assert not late["velocities"].any()
+    with pytest.raises(InputError, match="outside"):
+        ParticleAnimation(r, policy="error").at(-0.1)
+    # a static reconstruction has no decoder: its canonical particles at every time
+    s = ParticleAnimation(make_recon(static=True))
+    np.testing.assert_array_equal(s.at(0.3, velocity=True)["positions"], s.means)
+    assert not s.at(0.3, velocity=True)["velocities"].any()
+    assert anim.color.shape == (40, 3) and anim.color.min() >= 0 and anim.color.max() <= 1
+
+
+def test_time_map():
+    tm = TimeMap(1.0, 3.0)
+    assert tm.tau(2.0) == 0.5 and tm.inside(3.0) and not tm.inside(3.1)
+    with pytest.raises(InputError):
+        TimeMap(0, 1, policy="wrap")
+
+
+def test_shared_modules_import_without_torch():
+    """What the Blender extension takes from gf_core imports neither torch nor anything that does."""
+    code = ("import sys; import gf_core.decoder_np, gf_core.io, gf_core.errors; "
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('torch', 'cv2')]; "
+            "assert not bad, bad")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
