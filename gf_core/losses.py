@@ -150,6 +150,21 @@ def silhouette_distance(alpha: torch.Tensor, threshold: float = 0.5) -> torch.Te
     return torch.as_tensor(d / a.shape[1], dtype=alpha.dtype, device=alpha.device)
 
 
+def least_motion(positions: list, taus: list, spacing: float) -> torch.Tensor:
+    """Not in the paper: sum over consecutive decoded times of mean_i |p_i(b) - p_i(a)|^2 /
+    (spacing^2 |tau_b - tau_a|), a discrete integral of the squared speed (kinetic action) in
+    particle spacings per normalised time. Rendering cannot tell which particle is which inside
+    the fluid, so particles may circulate without changing an image; this prefers the quietest
+    motion that explains the images. ``positions`` (T, N, 3) in the order of ``taus``."""
+    order = sorted(range(len(taus)), key=lambda k: taus[k])
+    total = positions[0].new_zeros(())
+    for a, b in zip(order, order[1:]):
+        dt = abs(taus[b] - taus[a])
+        if dt > 1e-9:
+            total = total + ((positions[b] - positions[a]) ** 2).sum(-1).mean() / (spacing ** 2 * dt)
+    return total
+
+
 def hull_distance(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
     """Mean over particles of the silhouette distance (``silhouette_distance``) at each particle's
     projection: a pull towards the fluid's silhouette that reaches particles far outside it (the

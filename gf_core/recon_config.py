@@ -42,6 +42,7 @@ class LossConfig:
     opacity: float = TABLE1_WEIGHTS["opacity"]
     color: float = TABLE1_WEIGHTS["color"]
     hull: float = 1.0              # silhouette pull (datasets with alpha; not in the paper), see reconstruct.py
+    motion: float = 0.0            # least motion between the step's times (not in the paper), see losses.py
     background: str = "random"     # random | black | white | dataset (see reconstruct.py)
     blur_start: float = 0.02       # phase 2 starts comparing images blurred by this x image width (sigma)
 
@@ -132,7 +133,7 @@ class ReconConfig:
             raise InputError(where, f"model.init_opacity must be in (0, 1), got {m.init_opacity}")
         if lo.background not in ("random", "black", "white", "dataset"):
             raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
-        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull"):
+        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "motion"):
             v = getattr(lo, k)
             if not (isinstance(v, (int, float)) and v >= 0):
                 raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")

@@ -143,7 +143,8 @@ def composite(img: torch.Tensor, alpha: torch.Tensor | None, bg: torch.Tensor) -
 def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
     """The weights of Eq. 11 in ``phase`` (1-3) at ramp progress ``ramp`` in [0, 1]."""
     lo, ph = cfg.loss, cfg.phases
-    w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color, "hull": lo.hull}
+    w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color, "hull": lo.hull,
+         "motion": lo.motion if phase > 1 else 0.0}
     r = ph.phase1_reg
     if phase == 1:
         w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
@@ -393,6 +394,7 @@ class Trainer:
         outs, mses = [], []
         n_img = 0
         per_time = []
+        moved = []  # (tau, positions) for the least-motion term
         for t in times:
             idx = self.train.at_time(t)
             k = cfg.train.views_per_step
@@ -402,6 +404,8 @@ class Trainer:
             n_img += len(idx)
         for t, idx in per_time:
             p = self.model.at(t if use_dec else None)
+            if use_dec and w["motion"] > 0:
+                moved.append((self.time_map.tau(float(t)), p["means"]))
             for i in idx:
                 cam = self.train.cameras[i]
                 out = render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"], cam, bg,
@@ -442,6 +446,8 @@ class Trainer:
                 terms_t["color"] = w["color"] * L.color_consistency(p["sh"])
             for name, v in terms_t.items():
                 reg[name] = reg.get(name, 0.0) + v / len(times)
+        if len(moved) > 1:
+            reg["motion"] = w["motion"] * L.least_motion([m for _, m in moved], [a for a, _ in moved], self.spacing)
         terms = {"image": img_loss, **reg}
         loss = sum(terms.values())
         self.opt.zero_grad()

@@ -89,6 +89,9 @@ def session(addon_zip, recon_file, sim_file, tmp_path_factory):
              {"do": "frames", "frames": [1, 2, 3.5, 7.25, 30]},
              {"do": "render", "preset": "water", "frames": [1, 9], "camera": CAM, "res": 32, "samples": 4},
              {"do": "render", "preset": "glow", "frames": [1, 9], "camera": CAM, "res": 32, "samples": 4},
+             {"do": "render", "preset": "smoke", "frames": [1], "camera": CAM, "res": 32, "samples": 4},
+             {"do": "render", "preset": "honey", "frames": [1], "camera": CAM, "res": 32, "samples": 4},
+             {"do": "render", "preset": "recon", "frames": [1], "camera": CAM, "res": 32, "samples": 4},
              {"do": "save"},
              {"do": "bake_vdb"},
              {"do": "bake_usd", "substeps": 2, "replace": True},
@@ -169,6 +172,17 @@ def test_two_looks_render_differently_and_the_fluid_moves(session):
 
     for a, b in ((g1, g9), (w1, w9)):
         assert centre_x(b) - centre_x(a) > 3.0, (centre_x(a), centre_x(b))
+
+
+def test_every_other_look_renders_the_fluid(session):
+    _, _, out = session
+    w1 = _load(out / "water_1.png")
+    bg = np.median(w1.reshape(-1, 3), 0)
+    for look in ("smoke", "honey", "recon"):
+        img = _load(out / f"{look}_1.png")
+        fluid = np.abs(img - bg).max(-1) > 12
+        assert 0.01 < fluid.mean() < 0.9, (look, fluid.mean())
+        assert np.abs(img - w1).max(-1).mean() > 1.0, look  # not the water look again
 
 
 def test_usd_bake_reloads_with_identical_positions(session):
