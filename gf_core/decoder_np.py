@@ -126,14 +126,11 @@ class NumpyDecoder:
                 x[m:] = drow
                 for w_t, b in self.layers:
                     mask = h > 0
-                    np.multiply(h, mask, out=x[:m])
+                    np.multiply(h, mask, out=x[:m])  # ReLU (h is x[:m] after the first layer)
                     x[m:] *= mask
-                    y = x @ w_t
-                    h = y[:m]
+                    x = x @ w_t
+                    h = x[:m]
                     h += b
-                    if y.shape[1] != x.shape[1]:
-                        x = np.empty((2 * m, y.shape[1]), np.float32)
-                    x[m:] = y[m:]
                 dh = x[m:]
                 # d/dtau [(tau - tau0) Phi_p] = Phi_p + (tau - tau0) dPhi_p/dtau
                 vel[s:s + m] = h[:, :3] + scale * dh[:, :3]

@@ -76,17 +76,15 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
     times = np.unique([f.time for f in dataset.frames]) if dataset is not None else \
         np.linspace(model.time_map.t_min, model.time_map.t_max, 10 if model.is_dynamic else 1)
     h = float(r.config.get("h") or 2.5 * (r.config.get("spacing") or 1.0))
-    dens = []
-    for t in times:
-        with torch.no_grad():
-            p = model.at(float(t))["means"]
-        dens.append({"time": float(t), **density_spread(p, h)})
+    with torch.no_grad():  # decoded once per time: positions and velocities for every figure below
+        states = [model.at(float(t), with_velocity=True) for t in times]
+    dens = [{"time": float(t), **density_spread(st["means"], h)} for t, st in zip(times, states)]
     result["density"] = {"h": h, "per_frame": dens, "std_mean": float(np.mean([d["std"] for d in dens]))}
     log(f"SPH density D_i / mean: standard deviation {result['density']['std_mean']:.3f} (mean over frames, h = {h:.4g} m)")
     result["particle_stats"] = particle_stats(r)
     gt_file = gt_path or (dataset.gt_file if dataset is not None else None)
     sim = read_sim(gt_file) if gt_file else None
-    result["energy"] = energies(model, r, times, sim, rest_density)
+    result["energy"] = energies(model, r, times, states, sim, rest_density)
     e = result["energy"]
     log(f"mechanical energy (mass {e['mass_per_particle']:.3g} kg per particle, {e['mass_source']}): "
         f"total {e['per_frame'][0]['total']:.4g} J at t = {times[0]:.3g} s -> {e['per_frame'][-1]['total']:.4g} J "
@@ -95,12 +93,11 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
     if sim is not None:
         spacing = 2.0 * sim.particle_radius
         rows = []
-        for t in times:
+        for t, st in zip(times, states):
             f = int(np.argmin(np.abs(sim.times - t)))
             if abs(sim.times[f] - t) > 0.5 / sim.fps + 1e-9:
                 continue
-            with torch.no_grad():
-                p = model.at(float(t))["means"].cpu().numpy()
+            p = st["means"].cpu().numpy()
             rows.append({"time": float(t), "gt_frame": f, **particle_error(p, sim.positions[f], spacing),
                          **transport_distance(p, sim.positions[f], spacing)})
         if rows:
@@ -164,8 +161,9 @@ def particle_stats(r) -> dict:
     return out
 
 
-def energies(model: FluidModel, r, times, sim, rest_density: float | None) -> dict:
-    """Kinetic, potential and total energy per frame (paper Fig. 5) with the decoder's velocities.
+def energies(model: FluidModel, r, times, states, sim, rest_density: float | None) -> dict:
+    """Kinetic, potential and total energy per frame (paper Fig. 5) with the decoder's velocities
+    (``states``: ``model.at(t, with_velocity=True)`` for each of ``times``).
 
     Mass: the rest density (``rest_density``, else the ground truth's, else water's 1000 kg/m^3)
     times the fluid volume the reconstruction estimated from the masks, shared equally by its
@@ -182,9 +180,7 @@ def energies(model: FluidModel, r, times, sim, rest_density: float | None) -> di
         mass, src = rho * sp ** 3, f"{rho:g} kg/m^3 x spacing^3"
     z_ref = float(sim.domain_min[2]) if sim is not None else float(model.bounds.lo[2])
     rows = []
-    for t in times:
-        with torch.no_grad():
-            a = model.at(float(t), with_velocity=True)
+    for t, a in zip(times, states):
         row = {"time": float(t), **mechanical_energy(a["means"].cpu().numpy(), a["velocities"].cpu().numpy(),
                                                      mass, z_ref)}
         if sim is not None:

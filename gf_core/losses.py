@@ -205,5 +205,5 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
 
 
 __all__ = ["TABLE1_WEIGHTS", "l1", "blur", "ssim", "d_ssim", "poly6", "sph_density", "sph_density_knn", "density_uniformity",
-           "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency", "silhouette_distance", "hull_distance", "silhouette_coverage",
-           "psnr"]
+           "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency",
+           "silhouette_distance", "least_motion", "hull_distance", "silhouette_coverage", "psnr"]

@@ -203,6 +203,7 @@ class Trainer:
         self.time_map = TimeMap(float(times.min()), float(times.max()))
         self.static = len(times) == 1
         self.dataset_meta = dict(train_ds.meta)
+        self._sil, self._camt = {}, {}  # per training image: silhouette tensors, camera tensors
         self._train_ds = train_ds
         tau0 = cfg.decoder.canonical_time
         t_target = self.time_map.t_min + tau0 * self.time_map.duration
@@ -347,20 +348,28 @@ class Trainer:
         ent[2] += 1
         return ent[0]
 
+    HULL_PIXELS = 256  # fluid pixels per view and step for the silhouette coverage term
+
     def _silhouette(self, i: int):
-        """(distance to the silhouette (H, W), the fluid pixels' centres (P, 2)) of training image i."""
-        cache = self.__dict__.setdefault("_sil", {})
-        if i not in cache:
+        """(distance to the silhouette (H, W), the fluid pixels' centres in a fixed random order
+        with the first HULL_PIXELS repeated at the end (P + HULL_PIXELS, 2), P) of training image i.
+        A step takes HULL_PIXELS consecutive rows from a random start: a slice, no host-to-device copy."""
+        if i not in self._sil:
             a = self.train.alphas[i]
             rows, cols = torch.nonzero(a >= 0.5, as_tuple=True)
-            cache[i] = (L.silhouette_distance(a), torch.stack([cols, rows], -1).to(a.dtype) + 0.5)
-        return cache[i]
+            pix = torch.stack([cols, rows], -1).to(a.dtype) + 0.5
+            n = pix.shape[0]
+            if n:
+                order = torch.randperm(n, generator=torch.Generator().manual_seed(self.cfg.train.seed + i))
+                pix = pix[order.to(pix.device)]
+                pix = pix.repeat(-(-(n + self.HULL_PIXELS) // n), 1)[:n + self.HULL_PIXELS]
+            self._sil[i] = (L.silhouette_distance(a), pix, n)
+        return self._sil[i]
 
     def _cam_tensors(self, i: int):
-        cache = self.__dict__.setdefault("_camt", {})
-        if i not in cache:
-            cache[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
-        return cache[i]
+        if i not in self._camt:
+            self._camt[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
+        return self._camt[i]
 
     def _background(self) -> torch.Tensor:
         mode = self.cfg.loss.background
@@ -426,9 +435,9 @@ class Trainer:
                 mses.append(((out.color.detach() - target) ** 2).mean())
                 if w["hull"] > 0 and self.train.alphas[i] is not None:
                     vm, K = self._cam_tensors(i)
-                    dist, pix = self._silhouette(i)
-                    sub = pix[torch.as_tensor(self.np_rng.integers(0, max(pix.shape[0], 1), 256),
-                                              device=pix.device)] if pix.shape[0] else pix
+                    dist, pix, n_pix = self._silhouette(i)
+                    start = int(self.np_rng.integers(n_pix)) if n_pix else 0
+                    sub = pix[start:start + self.HULL_PIXELS]
                     hull = L.hull_distance(p["means"], dist, vm, K) + \
                         L.silhouette_coverage(p["means"], sub, vm, K, cam.width)
                     reg["hull"] = reg.get("hull", 0.0) + w["hull"] * hull / n_img
