@@ -1,4 +1,4 @@
-"""``gf-cli bench {render,sim}``: figures and ratios, printed as tables and written as JSON."""
+"""``gf-cli bench {render,sim,reconstruct,gpu,decoder}``: figures and ratios, printed as tables and written as JSON."""
 
 from __future__ import annotations
 
@@ -72,6 +72,10 @@ def register(sub):
     q.add_argument("--seconds", type=float, default=0.5, help="simulated seconds per run (default 0.5)")
     q.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     q.add_argument("--stability", action="store_true", help="also run the stability suite")
+    q.add_argument("--prediction", action="store_true",
+                   help="instead of the accuracy sweep: prediction error against simulation cost (each solver setting "
+                        "continues a reference water_sphere run (first --particles count) from frame 6 for 12 "
+                        "frames, as gf-cli predict does; Chamfer vs the reference against wall-clock seconds)")
     q.add_argument("--out", type=Path, default=Path("bench_sim"), help="output folder (JSON + PNG)")
     q.set_defaults(func=run_sim)
     g = bsub.add_parser("gpu", help="CUDA figures: renderer fwd+bwd (vs gsplat if installed), K-nearest SPH density",
@@ -84,6 +88,20 @@ def register(sub):
     g.add_argument("--repeats", type=int, default=50, help="timed repeats, median reported (default 50)")
     g.add_argument("--out", type=Path, default=Path("bench_gpu.json"), help="JSON output (default bench_gpu.json)")
     g.set_defaults(func=run_gpu)
+    c = bsub.add_parser("reconstruct", help="whole method: held-out PSNR and particle error against run time",
+                        description="Reconstructs one dataset for every pair of iteration budget and particle budget, "
+                                    "evaluates each run (held-out PSNR/SSIM, Chamfer against the dataset's particles "
+                                    "when it has them, density spread) and writes bench_reconstruct.json and "
+                                    "error_vs_time.png (points, Pareto front, training traces).")
+    c.add_argument("dataset", type=Path, help="dataset folder")
+    c.add_argument("--iterations", default="1000,3000", help="comma-separated iteration budgets (default 1000,3000)")
+    c.add_argument("--particles", default="2000,4000", help="comma-separated particle budgets (default 2000,4000)")
+    c.add_argument("--preset", default="water", choices=["water", "honey", "smoke"], help="preset (default water)")
+    c.add_argument("--config", type=Path, default=None, help="TOML file overriding preset keys (default: none)")
+    c.add_argument("--frames", default=None, metavar="START:END:STEP", help="train on these frame times (default all)")
+    c.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    c.add_argument("--out", type=Path, default=Path("bench_reconstruct"), help="output folder (runs, JSON, PNG)")
+    c.set_defaults(func=run_reconstruct)
     d = bsub.add_parser("decoder", help="numpy decoder (the Blender extension's) against the torch one",
                         description="Times one evaluation of the time-continuous decoder (paper Eq. 4, default "
                                     "dimensions) for all particles at one time: numpy float32 as the Blender "
@@ -153,14 +171,26 @@ def run_sim(args) -> int:
     check_device(args.device)
     _check_common(args, out_is_file=False)
     args.out.mkdir(parents=True, exist_ok=True)
-    recs, traces = bench_sim(solvers, counts, scene=args.scene, seconds=args.seconds,
-                             device=args.device)
-    print()
-    print(table(recs, [("solver", "solver", "s"), ("setting", "setting", "s"), ("particles", "N", "d"),
-                       ("steps", "steps", "d"), ("wall_s", "wall s", ".1f"),
-                       ("wall_per_sim_s", "s per sim s", ".1f"), ("density_err_mean", "mean rho err", ".2e"),
-                       ("density_err_max", "max rho err", ".2e"), ("energy_change_rel", "dE/E0", "+.3f")]))
-    out = {"machine": machine(), "records": recs, "traces": traces}
+    out = {"machine": machine()}
+    if args.prediction:
+        from gf_core.bench.sim_bench import bench_prediction, plot_prediction
+
+        pred = bench_prediction(solvers, counts[0], device=args.device)
+        out["prediction"] = pred
+        print()
+        print(table(pred, [("solver", "solver", "s"), ("setting", "setting", "s"), ("particles", "N", "d"),
+                           ("steps", "steps", "d"), ("wall_s", "wall s", ".1f"),
+                           ("chamfer_mean", "Chamfer mean", ".3f"), ("chamfer_final", "Chamfer last", ".3f")]))
+        plot_prediction(pred, args.out / "prediction_error_vs_time.png")
+    else:
+        recs, traces = bench_sim(solvers, counts, scene=args.scene, seconds=args.seconds, device=args.device)
+        print()
+        print(table(recs, [("solver", "solver", "s"), ("setting", "setting", "s"), ("particles", "N", "d"),
+                           ("steps", "steps", "d"), ("wall_s", "wall s", ".1f"),
+                           ("wall_per_sim_s", "s per sim s", ".1f"), ("density_err_mean", "mean rho err", ".2e"),
+                           ("density_err_max", "max rho err", ".2e"), ("energy_change_rel", "dE/E0", "+.3f")]))
+        out.update(records=recs, traces=traces)
+        plot(recs, traces, args.out / "error_vs_time.png")
     if args.stability:
         from gf_core.sim.stability import CASES, run_case
 
@@ -173,9 +203,45 @@ def run_sim(args) -> int:
         for r in stab:
             if r.get("refused"):
                 print(f"  {r['case']} ({r['solver']}): refused up front: {r['refused']}")
-    plot(recs, traces, args.out / "error_vs_time.png")
     atomic_write_text(args.out / "bench_sim.json", __import__("json").dumps(out, indent=1))
-    print(f"\nwrote {args.out / 'bench_sim.json'} and {args.out / 'error_vs_time.png'}")
+    print(f"\nwrote {args.out / 'bench_sim.json'} and the plot in {args.out}")
+    return 0
+
+
+def run_reconstruct(args) -> int:
+    from gf_core.bench.common import machine, table
+    from gf_core.bench.recon_bench import bench_reconstruct, plot
+    from gf_core.errors import InputError
+    from gf_core.io import atomic_write_text
+    from gf_core.recon_config import make_config
+
+    from .cmd_reconstruct import check_device
+    from .cmd_render_dataset import parse_frames
+
+    its = _ints(args.iterations, "--iterations")
+    ns = _ints(args.particles, "--particles")
+    check_device(args.device)
+    _check_common(args, out_is_file=False)
+    if not args.dataset.is_dir():
+        raise InputError(args.dataset, "is not a dataset folder")
+    make_config(args.preset, args.config)  # a bad config fails before any run
+    frames = parse_frames(args.frames) if args.frames is not None else None
+    args.out.mkdir(parents=True, exist_ok=True)
+    recs = bench_reconstruct(args.dataset, args.out, iterations=its, particles=ns, preset=args.preset,
+                             config_file=args.config, device=args.device, frames=frames)
+    cols = [("iterations_budget", "it budget", "d"), ("particle_budget", "N budget", "d"), ("iterations", "it", "d"),
+            ("particles", "N", "d"), ("wall_s", "wall s", ".1f"), ("train_psnr", "train PSNR", ".2f")]
+    if recs[0]["test_psnr"] is not None:
+        cols += [("test_psnr", "held-out PSNR", ".2f"), ("test_ssim", "SSIM", ".3f")]
+    if "chamfer" in recs[0]:
+        cols += [("gt_to_recon", "true->recon", ".3f"), ("recon_to_gt", "recon->true", ".3f")]
+    cols += [("density_std", "density std", ".3f")]
+    print()
+    print(table(recs, cols))
+    plot(recs, args.out / "error_vs_time.png")
+    atomic_write_text(args.out / "bench_reconstruct.json",
+                      json.dumps({"machine": machine(), "dataset": str(args.dataset), "records": recs}, indent=1))
+    print(f"\nwrote {args.out / 'bench_reconstruct.json'} and {args.out / 'error_vs_time.png'}")
     return 0
 
 

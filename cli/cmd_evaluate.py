@@ -14,7 +14,8 @@ def register(sub):
                                    "to the nearest reconstructed one and back, in true particle spacings. Writes "
                                    "RUN/eval.json and PNG plots (including PSNR against wall-clock seconds from "
                                    "metrics.jsonl).")
-    p.add_argument("run", type=Path, help="run folder (holding recon.h5) or a recon.h5 file")
+    p.add_argument("run", type=Path, help="run folder (holding recon.h5), a recon.h5 file, or a sim.h5 from "
+                                          "gf-cli predict/edit (rendered with the learned appearance)")
     p.add_argument("--dataset", type=Path, default=None,
                    help="dataset folder (default: the one recorded in recon.h5, if it still exists)")
     p.add_argument("--gt", type=Path, default=None,
@@ -25,35 +26,63 @@ def register(sub):
     p.add_argument("--duration", type=float, default=None, help="clip length in seconds for normalised time (default: the dataset's)")
     p.add_argument("--rest-density", type=float, default=None,
                    help="kg/m^3 for particle masses in the energies (default: the ground truth's, else 1000)")
+    p.add_argument("--upsample", type=int, default=None, metavar="K",
+                   help="temporal resampling (paper Table 7): render the training views at K x the training frame "
+                        "rate from the decoder (PNGs in OUT/upsample_xK/), score the frames held out in time "
+                        "(reconstruct --frames ::2) against frame repetition and linear blending, and measure "
+                        "jitter (default: off)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from gf_core.data import load_dataset
     from gf_core.errors import InputError
-    from gf_core.evaluate import evaluate
-    from gf_core.io import read_recon
+    from gf_core.evaluate import evaluate, evaluate_continuation
+    from gf_core.io import SIM_FORMAT, file_format, read_recon, read_sim
 
     from .cmd_reconstruct import check_device
 
     device = check_device(args.device)
+    if args.upsample is not None and args.upsample < 1:
+        raise InputError("--upsample", f"must be an integer >= 1, got {args.upsample}")
     if args.rest_density is not None and not args.rest_density > 0:
         raise InputError("--rest-density", f"must be > 0 kg/m^3, got {args.rest_density}")
     recon = args.run / "recon.h5" if args.run.is_dir() else args.run
     if not recon.exists():
         raise InputError(recon, "no reconstruction here (run gf-cli reconstruct first)")
+    continuation = file_format(recon) == SIM_FORMAT
+    if continuation:
+        sim = read_sim(recon)
+        if not sim.config.get("recon"):
+            raise InputError(recon, "is a simulation, not a continuation of a reconstruction (gf-cli predict/edit)")
+        recon = Path(sim.config["recon"])
+    r = read_recon(recon)
     ds_path = args.dataset
     if ds_path is None:
-        rec = read_recon(recon).config.get("dataset")
+        rec = r.config.get("dataset")
         if rec and Path(rec).exists():
             ds_path = Path(rec)
     train = test = None
     if ds_path is not None:
-        gray = read_recon(recon).channels == 1
-        kw = dict(grayscale=gray, fps=args.fps, duration=args.duration)
+        kw = dict(grayscale=r.channels == 1, fps=args.fps, duration=args.duration)
         train = load_dataset(ds_path, **kw)
         if (ds_path / "transforms_test.json").exists() or any(ds_path.glob("view_*/transforms_test.json")):
             test = load_dataset(ds_path, split="test", **kw)
-    evaluate(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out,
-             rest_density=args.rest_density)
+    if not continuation and r.decoder is not None:  # frames outside the reconstructed clip were never fitted
+        lo, hi = r.time_min - 1e-6, r.time_max + 1e-6
+        inside = [t for t in train.times if lo <= t <= hi] if train is not None else []
+        if train is not None and len(inside) < len(train.times):
+            print(f"evaluating the {len(inside)} of {len(train.times)} frame times inside the reconstructed clip "
+                  f"[{r.time_min:g}, {r.time_max:g}] s (predict continues past it)")
+            if not inside:
+                raise InputError(ds_path, "none of its frame times lies inside the reconstructed clip")
+            train = train.with_times(inside)
+            test = test.with_times(inside) if test is not None else None
+    if continuation:
+        evaluate_continuation(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out)
+    else:
+        if args.upsample and train is None:
+            raise InputError("--upsample", "needs the dataset: give --dataset")
+        evaluate(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out,
+                 rest_density=args.rest_density, upsample=args.upsample)
     return 0

@@ -48,6 +48,10 @@ def register(sub):
                    help="frame rate, for datasets whose time is normalised to [0, 1] (default: the dataset's)")
     p.add_argument("--duration", type=float, default=None,
                    help="seconds the clip spans, for normalised time (default: the dataset's)")
+    p.add_argument("--frames", default=None, metavar="START:END:STEP",
+                   help="train on these of the dataset's frame times only (python slice over the sorted times: "
+                        "'0:20' the first 20, '::2' every other one; the rest are held out in time for "
+                        "evaluate --upsample / predict; default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=run)
 
@@ -111,10 +115,16 @@ def run(args) -> int:
         raise InputError(out, f"cannot write the run folder ({e.strerror})") from None
     kw = dict(grayscale=args.grayscale, background_removal=args.background_removal, fps=args.fps,
               duration=args.duration)
+    from .cmd_render_dataset import parse_frames
+
+    frames = parse_frames(args.frames) if args.frames is not None else None
     train = load_dataset(args.dataset, **kw)
     test = None
     if (args.dataset / "transforms_test.json").exists() or any(args.dataset.glob("view_*/transforms_test.json")):
         test = load_dataset(args.dataset, split="test", **kw)
+    if frames is not None:  # the held-out views are scored at the training times
+        train = train.select_times(frames)
+        test = test.with_times(train.times) if test is not None else None
     print(f"dataset {args.dataset}: {len(train)} training images ({len(train.views)} views x {len(train.times)} "
           f"times){f', {len(test)} held-out' if test else ''}; preset {args.preset}, {cfg.phases.iterations} "
           f"iterations at most, device {device}", flush=True)

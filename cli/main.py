@@ -7,10 +7,11 @@ import sys
 
 from gf_core.errors import GFError
 
-from . import (cmd_addon, cmd_bench, cmd_demo, cmd_evaluate, cmd_export, cmd_inspect, cmd_reconstruct,
-               cmd_render_dataset, cmd_simulate)
+from . import (cmd_addon, cmd_bench, cmd_demo, cmd_edit, cmd_evaluate, cmd_export, cmd_inspect, cmd_predict,
+               cmd_reconstruct, cmd_render_dataset, cmd_simulate)
 
-COMMANDS = [cmd_demo, cmd_simulate, cmd_render_dataset, cmd_reconstruct, cmd_evaluate, cmd_export, cmd_inspect, cmd_bench, cmd_addon]
+COMMANDS = [cmd_demo, cmd_simulate, cmd_render_dataset, cmd_reconstruct, cmd_evaluate, cmd_predict, cmd_edit,
+            cmd_export, cmd_inspect, cmd_bench, cmd_addon]
 
 
 def build_parser() -> argparse.ArgumentParser:

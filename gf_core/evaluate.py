@@ -18,6 +18,17 @@ from .model import FluidModel
 from .render import render
 
 
+def composited(ds, i: int, bg: torch.Tensor) -> torch.Tensor:
+    """Image ``i`` of ``ds`` over the background ``bg`` (C,) by its alpha, on ``bg``'s device: what
+    the renderer's output is compared with."""
+    img, alpha = ds.load(i)
+    target = torch.as_tensor(img, device=bg.device)
+    if alpha is not None:
+        a = torch.as_tensor(alpha, device=bg.device)[..., None]
+        target = target * a + bg.reshape(1, 1, -1) * (1 - a)
+    return target
+
+
 def _render_split(model: FluidModel, ds, device) -> list[dict]:
     rows = []
     bg = torch.as_tensor(np.asarray(ds.background, np.float64)[:ds.channels], dtype=torch.float32, device=device)
@@ -29,11 +40,7 @@ def _render_split(model: FluidModel, ds, device) -> list[dict]:
             with torch.no_grad():
                 params = model.at(rec.time)
             cache_t = rec.time
-        img, alpha = ds.load(i)
-        target = torch.as_tensor(img, device=device)
-        if alpha is not None:
-            a = torch.as_tensor(alpha, device=device)[..., None]
-            target = target * a + bg.reshape(1, 1, -1) * (1 - a)
+        target = composited(ds, i, bg)
         with torch.no_grad():
             out = render(params["means"], params["scales"], params["quats"], params["opacities"], params["sh"],
                          rec.camera, bg, sh_degree=model.sh_degree)
@@ -56,10 +63,11 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device="cpu", out: Path | None = None,
-             rest_density: float | None = None, log=print) -> dict:
+             rest_density: float | None = None, upsample: int | None = None, log=print) -> dict:
     run = Path(run)
     recon_path = run / "recon.h5" if run.is_dir() else run
     out = Path(out) if out else (run if run.is_dir() else run.parent)
+    out.mkdir(parents=True, exist_ok=True)
     r = read_recon(recon_path)
     model = FluidModel.from_recon(r, device=device)
     result = {"recon": str(recon_path), "particles": len(model), "dynamic": model.is_dynamic}
@@ -72,6 +80,12 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
             result[name] = _summary(_render_split(model, ds, device))
             log(f"{name}: PSNR {result[name]['psnr_mean']:.2f} dB, SSIM {result[name]['ssim_mean']:.3f} "
                 f"over {len(ds)} images (worst frame {result[name]['psnr_min_frame']:.2f} dB)")
+    if upsample:
+        if dataset is None:
+            raise InputError("--upsample", "needs the dataset (the training views and the frames held out in time)")
+        from .resample import upsample as resample
+
+        result["upsample"] = resample(model, r, dataset, upsample, out=out, device=device, log=log)
     # physics: the SPH density spread per frame
     times = np.unique([f.time for f in dataset.frames]) if dataset is not None else \
         np.linspace(model.time_map.t_min, model.time_map.t_max, 10 if model.is_dynamic else 1)
@@ -126,6 +140,110 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
     atomic_write_text(out / "eval.json", json.dumps(result, indent=1))
     log(f"wrote {out / 'eval.json'} and {len(result['plots'])} plots")
     return result
+
+
+def continuation_appearance(sim, where, device="cpu"):
+    """(model, look) for rendering a continuation (``sim``, a SimData from predict/edit): the
+    reconstruction it names, and per simulated particle the scale, rotation, opacity and SH of its
+    source Gaussian at the start time."""
+    recon = sim.config.get("recon")
+    if sim.source_index is None or not recon:
+        raise InputError(where, "is not a continuation of a reconstruction (no source_index / recon in it): "
+                                "evaluate takes a run folder, a recon.h5, or a sim.h5 from gf-cli predict/edit")
+    if not Path(recon).exists():
+        raise InputError(where, f"names the reconstruction {recon}, which does not exist any more")
+    r = read_recon(recon)
+    if sim.source_index.max(initial=-1) >= r.num_particles:
+        raise InputError(where, f"source_index reaches {int(sim.source_index.max())} but {recon} has "
+                                f"{r.num_particles} particles")
+    model = FluidModel.from_recon(r, device=device)
+    with torch.no_grad():
+        app = model.at(float(sim.config.get("start_time_s", sim.times[0])))
+    idx = torch.as_tensor(sim.source_index, device=device)
+    return model, {k: app[k][idx] for k in ("scales", "quats", "opacities", "sh")}
+
+
+def evaluate_continuation(sim_path: Path, *, dataset=None, test_dataset=None, gt_path=None, device="cpu",
+                          out: Path | None = None, log=print) -> dict:
+    """Judge a prediction or edit (``gf-cli predict``/``edit``): render every frame of the
+    ``sim.h5`` with the learned appearance (each particle keeps the scale, rotation, opacity and
+    colour its source Gaussian had at the start time) into the dataset's views at the same times
+    and compare with the images (PSNR/SSIM, paper Table 8); compare the particles with the ground
+    truth's at the same times (both Chamfer directions, in true spacings). Writes
+    ``<stem>_eval.json`` and ``<stem>_eval.png`` beside the sim.h5 (or in ``out``)."""
+    sim_path = Path(sim_path)
+    sim = read_sim(sim_path)
+    model, look = continuation_appearance(sim, sim_path, device)
+    recon, t0 = sim.config["recon"], float(sim.config.get("start_time_s", sim.times[0]))
+    tol = 0.5 / sim.fps + 1e-9
+    result = {"sim": str(sim_path), "recon": recon, "start_time_s": t0, "particles": sim.num_particles,
+              "frames": sim.num_frames, "edits": sim.config.get("edits", [])}
+    for name, ds in (("train", dataset), ("test", test_dataset)):
+        if ds is None or len(ds) == 0:
+            continue
+        bg = torch.as_tensor(np.asarray(ds.background, np.float64)[:ds.channels], dtype=torch.float32, device=device)
+        rows = []
+        for i, rec in enumerate(ds.frames):
+            f = int(np.argmin(np.abs(sim.times - rec.time)))
+            if abs(sim.times[f] - rec.time) > tol or f == 0:
+                continue  # frame 0 is the reconstruction itself, not a prediction
+            target = composited(ds, i, bg)
+            with torch.no_grad():
+                o = render(torch.as_tensor(sim.positions[f], device=device), look["scales"], look["quats"],
+                           look["opacities"], look["sh"], rec.camera, bg, sh_degree=model.sh_degree)
+            rows.append({"view": rec.view_id, "time": rec.time, "frame": f, **image_metrics(o.color, target)})
+        if rows:
+            result[name] = _summary(rows)
+            log(f"{name}: predicted frames against the dataset: PSNR {result[name]['psnr_mean']:.2f} dB, "
+                f"SSIM {result[name]['ssim_mean']:.3f} over {len(rows)} images")
+    gt_file = gt_path or (dataset.gt_file if dataset is not None else None)
+    if gt_file:
+        gt = read_sim(gt_file)
+        sp = 2.0 * gt.particle_radius
+        rows = []
+        for f in range(sim.num_frames):
+            g = int(np.argmin(np.abs(gt.times - sim.times[f])))
+            if abs(gt.times[g] - sim.times[f]) <= 0.5 / gt.fps + 1e-9:
+                rows.append({"time": float(sim.times[f]), "gt_frame": g,
+                             **particle_error(sim.positions[f], gt.positions[g], sp)})
+        if rows:
+            result["particles_vs_gt"] = {"gt": str(gt_file), "spacing": sp, "per_frame": rows,
+                                         "chamfer_last": rows[-1]["chamfer"],
+                                         "chamfer_mean": float(np.mean([x["chamfer"] for x in rows]))}
+            log(f"particles vs ground truth: Chamfer {rows[0]['chamfer']:.3f} spacings at t = {rows[0]['time']:.3g} s "
+                f"-> {rows[-1]['chamfer']:.3f} at t = {rows[-1]['time']:.3g} s")
+    out = Path(out) if out else sim_path.parent
+    out.mkdir(parents=True, exist_ok=True)
+    result["plots"] = _plot_continuation(result, out / f"{sim_path.stem}_eval.png")
+    atomic_write_text(out / f"{sim_path.stem}_eval.json", json.dumps(result, indent=1))
+    log(f"wrote {out / (sim_path.stem + '_eval.json')}")
+    return result
+
+
+def _plot_continuation(result: dict, path: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+    for split in ("train", "test"):
+        if split in result:
+            pf = result[split]["per_frame"]
+            ax[0].plot([p["time"] for p in pf], [p["psnr"] for p in pf], "o-", ms=3, label=f"{split} views")
+    ax[0].set(xlabel="time (s)", ylabel="PSNR (dB)", title="predicted frames vs dataset")
+    if "train" in result or "test" in result:
+        ax[0].legend()
+    if "particles_vs_gt" in result:
+        pv = result["particles_vs_gt"]["per_frame"]
+        ax[1].plot([x["time"] for x in pv], [x["gt_to_recon"] for x in pv], "o-", ms=3, label="true -> predicted")
+        ax[1].plot([x["time"] for x in pv], [x["recon_to_gt"] for x in pv], "s-", ms=3, label="predicted -> true")
+        ax[1].legend()
+    ax[1].set(xlabel="time (s)", ylabel="mean distance (true spacings)", title="particles vs ground truth")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [path.name]
 
 
 def read_metrics(path: Path) -> list[dict]:
@@ -247,6 +365,23 @@ def plot_eval(result: dict, curve: list[dict], out: Path) -> list[str]:
         ax[1].set(xlabel="time (s)", ylabel="particles", title="particle counts")
         ax[1].legend()
         save(fig, "eval_particles.png")
+    if "upsample" in result:
+        u = result["upsample"]
+        from .resample import METHODS
+
+        fig, ax = plt.subplots(1, 2, figsize=(9, 3.2))
+        names = list(METHODS) + (["truth"] if "truth" in u["jitter"] else [])
+        ax[0].bar(names, [u["jitter"][m] for m in names], color=["C0", "C1", "C2", "gray"][:len(names)])
+        ax[0].set(ylabel="std of adjacent-frame differences", title=f"jitter at {u['fps']:.4g} fps (x{u['k']})")
+        if "heldout" in u:
+            ax[1].bar(list(METHODS), [u["heldout"][m]["psnr"] for m in METHODS], color=["C0", "C1", "C2"])
+            lo = min(u["heldout"][m]["psnr"] for m in METHODS)
+            ax[1].set_ylim(max(lo - 3, 0), None)
+        else:
+            ax[1].text(0.5, 0.5, "no frame held out in time\n(reconstruct --frames ::2 holds out every other)",
+                       ha="center", va="center", transform=ax[1].transAxes)
+        ax[1].set(ylabel="PSNR (dB)", title=f"frames held out in time ({len(u['heldout_times'])})")
+        save(fig, "eval_upsample.png")
     if curve:
         fig, ax = plt.subplots(figsize=(5, 3.4))
         ax.plot([c["wall_s"] for c in curve], [c["train_psnr"] for c in curve], lw=1, label="training PSNR")
@@ -263,4 +398,4 @@ def plot_eval(result: dict, curve: list[dict], out: Path) -> list[str]:
     return files
 
 
-__all__ = ["evaluate", "read_metrics", "plot_eval"]
+__all__ = ["evaluate", "evaluate_continuation", "read_metrics", "plot_eval"]

@@ -57,6 +57,18 @@ def _h5():
     return h5py
 
 
+def file_format(path) -> str | None:
+    """The ``format`` attribute of an HDF5 file (``gaussfluids.sim`` / ``gaussfluids.recon``), or
+    None for a file that is not one of ours."""
+    h5py = _h5()
+    try:
+        with h5py.File(Path(path), "r") as f:
+            v = f.attrs.get("format")
+    except OSError:
+        return None
+    return v.decode() if isinstance(v, bytes) else v
+
+
 def _open_checked(path, fmt: str, version: int):
     """Open an HDF5 file for reading and check its format/version attributes."""
     path = Path(path)
@@ -149,6 +161,9 @@ class SimData:
     config: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)  # per-frame arrays, e.g. density_error_mean (F,)
     complete: bool = True      # False: a run stopped early; the frames written so far
+    # a continuation of a reconstruction (gf-cli predict/edit): for each particle, the index of the
+    # reconstructed particle whose appearance (Gaussian scale, rotation, opacity, colour) it keeps
+    source_index: np.ndarray | None = None
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, np.float32)
@@ -162,6 +177,11 @@ class SimData:
         self.times = np.asarray(self.times, np.float64)
         if self.times.shape != (self.positions.shape[0],):
             raise InputError("sim data", f"times must be ({self.positions.shape[0]},), got {self.times.shape}")
+        if self.source_index is not None:
+            self.source_index = np.asarray(self.source_index, np.int64)
+            if self.source_index.shape != (self.positions.shape[1],):
+                raise InputError("sim data", f"source_index must be ({self.positions.shape[1]},), "
+                                             f"got {self.source_index.shape}")
 
     @property
     def num_frames(self) -> int:
@@ -216,6 +236,8 @@ def write_sim(path, sim: SimData) -> Path:
             f.create_dataset("positions", data=sim.positions, **comp)
             f.create_dataset("velocities", data=sim.velocities, **comp)
             f.create_dataset("times", data=sim.times)
+            if sim.source_index is not None:
+                f.create_dataset("source_index", data=sim.source_index)
             g = f.create_group("stats")
             for k, v in sim.stats.items():
                 g.create_dataset(k, data=np.asarray(v))
@@ -254,6 +276,11 @@ class SimWriter:
             f.create_dataset(name, shape=(0, n_particles, 3), maxshape=(None, n_particles, 3), dtype=np.float32,
                              chunks=chunk, compression="gzip" if n_particles * 3 > 30000 else None)
         f.create_dataset("times", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+        if header.source_index is not None:
+            if header.source_index.shape != (n_particles,):
+                raise InputError(str(self.path), f"source_index has {header.source_index.shape[0]} entries "
+                                                 f"for {n_particles} particles")
+            f.create_dataset("source_index", data=header.source_index)
         g = f.create_group("stats")
         for k in STAT_KEYS:
             g.create_dataset(k, shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
@@ -311,12 +338,19 @@ def read_sim(path) -> SimData:
         complete = bool(f.attrs.get("complete", True))
         if pos.shape[0] == 0:
             raise FormatError(path, "holds no frames (the simulation stopped before its first frame)")
+        src = None
+        if "source_index" in f:
+            src = _read(f, "source_index", path, ndim=1, dtype=np.int64)
+            if src.shape[0] != pos.shape[1] or (src.size and src.min() < 0):
+                raise FormatError(path, f"source_index must hold {pos.shape[1]} non-negative indices, "
+                                        f"got {src.shape[0]} (min {src.min() if src.size else '-'})")
         return SimData(positions=pos, velocities=vel, fps=fps, particle_radius=radius,
                        rest_density=_attr(f, "rest_density", path),
                        viscosity=_attr(f, "viscosity", path), gravity=tuple(gravity.tolist()),
                        solver=_attr(f, "solver", path, str), domain_min=tuple(dmin.tolist()),
                        domain_max=tuple(dmax.tolist()), scene=_attr(f, "scene", path, str),
-                       times=times, config=_json_attr(f, "config", path), stats=stats, complete=complete)
+                       times=times, config=_json_attr(f, "config", path), stats=stats, complete=complete,
+                       source_index=src)
 
 
 def _read_vec_attr(f, name, path) -> np.ndarray:

@@ -2,7 +2,6 @@
 
 import importlib.util
 import json
-import time
 
 import numpy as np
 import pytest
@@ -68,8 +67,7 @@ def test_resumable_and_deterministic(sim_file, tmp_path, capsys):
     first = cv2.imread(str(out / "train" / "v02_f00002.png"), cv2.IMREAD_UNCHANGED)
     (out / "train" / "v02_f00002.png").unlink()
     capsys.readouterr()
-    t0 = time.time()
-    render(sim_file, out)
+    render(sim_file, out)  # only the missing image is rendered again (the log says so; no wall-time test)
     log = capsys.readouterr().out
     assert "frame 1/3 (sim frame 0): already rendered, skipped" in log
     assert "frame 2/3 (sim frame 2, t = 0.100 s): 1 images" in log
@@ -77,7 +75,6 @@ def test_resumable_and_deterministic(sim_file, tmp_path, capsys):
     again = cv2.imread(str(out / "train" / "v02_f00002.png"), cv2.IMREAD_UNCHANGED)
     assert np.array_equal(again, first)  # same seed, same pixels
     assert not list(out.rglob("*.partial*"))
-    assert time.time() - t0 < 120
 
 
 def test_resume_refuses_another_simulation(sim_file, tmp_path, capsys):

@@ -50,6 +50,73 @@ def bench_sim(solvers, counts, *, scene: str = "dam_break", seconds: float = 0.5
     return records, traces
 
 
+def bench_prediction(solvers, particles: int, *, scene: str = "water_sphere", start_frame: int = 6,
+                     frames: int = 12, fps: float = 30.0, noise: float = 0.0, device: str = "cpu", log=print):
+    """Prediction error against simulation cost: a reference run of ``scene`` (DFSPH at its
+    strictest sweep setting) is cut at ``start_frame``; from that state (optionally perturbed by
+    ``noise`` particle spacings), each solver and sweep setting predicts ``frames`` frames the way
+    ``gf-cli predict`` does (rest state estimated from the particles), and its particles are
+    compared with the reference's at every frame (both Chamfer directions, in spacings) against
+    the wall-clock seconds spent so far."""
+    import time
+
+    from ..metrics import particle_error
+    from ..predict import State, continue_state
+
+    ref_label, ref_settings = SWEEPS["dfsph"][-1]
+    ref, _ = simulate(scene, solver="dfsph", particles=particles, fps=fps, seconds=(start_frame + frames) / fps,
+                      device=device, **ref_settings)
+    sp = 2.0 * ref.particle_radius
+    x0 = ref.positions[start_frame].astype(np.float64)
+    if noise:
+        x0 = x0 + np.random.default_rng(0).normal(scale=noise * sp, size=x0.shape)
+    state = State(positions=x0, velocities=ref.velocities[start_frame], source_index=np.arange(ref.num_particles),
+                  time=float(ref.times[start_frame]), domain=(np.asarray(ref.domain_min), np.asarray(ref.domain_max)))
+    records = []
+    for solver in solvers:
+        for label, settings in SWEEPS[solver]:
+            walls = [0.0]
+            t0 = time.perf_counter()
+            sim, rep = continue_state(state, frames=frames, fps=fps, solver=solver, device=device,
+                                      solver_settings=settings,
+                                      progress=lambda f, n, t, last: walls.append(time.perf_counter() - t0))
+            err = [particle_error(sim.positions[k], ref.positions[start_frame + k], sp) for k in range(frames + 1)]
+            records.append({"scene": scene, "solver": solver, "setting": label, "particles": ref.num_particles,
+                            "start_time_s": state.time, "frames": frames, "noise_spacings": noise,
+                            "steps": rep["steps"], "wall_s": rep["wall_seconds"],
+                            "spacing_estimated": rep["spacing"], "spacing_true": sp,
+                            "chamfer_final": err[-1]["chamfer"],
+                            "chamfer_mean": float(np.mean([e["chamfer"] for e in err[1:]])),
+                            "trace_wall_s": walls, "trace_chamfer": [e["chamfer"] for e in err]})
+            log(f"{solver:>6} {label:<20} {rep['wall_seconds']:6.1f} s  Chamfer after {frames} frames "
+                f"{err[-1]['chamfer']:.3f} spacings (reference: dfsph {ref_label})")
+    return records
+
+
+def plot_prediction(records, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for solver in sorted({r["solver"] for r in records}):
+        rs = [r for r in records if r["solver"] == solver]
+        ax[0].plot([r["wall_s"] for r in rs], [r["chamfer_final"] for r in rs], "o-", label=solver)
+        for r in rs:
+            ax[0].annotate(r["setting"], (r["wall_s"], r["chamfer_final"]), fontsize=7)
+            ax[1].plot(r["trace_wall_s"], r["trace_chamfer"], lw=1, label=f"{solver} {r['setting']}")
+    ax[0].set(xlabel="wall-clock seconds", ylabel="Chamfer at the last frame (spacings)",
+              title=f"prediction error vs run time ({records[0]['frames']} frames)")
+    ax[0].set_xscale("log")
+    ax[0].legend()
+    ax[1].set(xlabel="wall-clock seconds", ylabel="Chamfer vs reference (spacings)", title="per-frame traces")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def plot(records, traces, path):
     import matplotlib
 

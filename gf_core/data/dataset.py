@@ -118,6 +118,23 @@ class FluidDataset:
                 if (view_id is None or f.view_id == view_id)
                 and (time is None or abs(f.time - time) < 1e-9)]
 
+    def select_times(self, frames: slice) -> "FluidDataset":
+        """The same images restricted to the times ``self.times[frames]`` (``slice(0, 20)``: the
+        first 20; ``slice(None, None, 2)``: every other one). Raises if none is left."""
+        ds = self.with_times(self.times[frames])
+        ds.meta["frame_selection"] = f"{frames.start or ''}:{frames.stop or ''}:{frames.step or ''}"
+        return ds
+
+    def with_times(self, times) -> "FluidDataset":
+        """The images at ``times`` (seconds, to 1e-9) only (a new, empty pixel cache)."""
+        from dataclasses import replace
+
+        times = np.asarray(times, np.float64).reshape(-1)
+        keep = [f for f in self.frames if times.size and np.abs(times - f.time).min() < 1e-9]
+        if not keep:
+            raise InputError(self.root, f"none of its {len(self.times)} frame times is selected")
+        return replace(self, frames=keep, meta=dict(self.meta))
+
     def ground_truth(self):
         """The ground-truth particles (``SimData``) if the dataset carries them, else None."""
         if self.gt_file is None:

@@ -43,8 +43,8 @@ import torch
 
 from ..neighbors import neighbor_pairs
 from . import kernels
-from .common import (Domain, SolverBase, enforce_box, even_step, implicit_viscosity, lattice_volume,
-                     limit_speed, xsph)
+from .common import (Domain, SolverBase, enforce_box, estimate_rest_state, even_step, implicit_viscosity,
+                     lattice_volume, limit_speed, xsph)
 
 
 WALL_ALPHA_CAP = 4.0  # wall factor alpha_b <= 4 x a full-lattice fluid particle's (see _neighbourhood)
@@ -66,6 +66,7 @@ class DFSPHParams:
     xsph: float = 0.01             # XSPH smoothing (water)
     viscosity: float = 0.0         # kinematic viscosity nu [m^2/s], solved implicitly
     max_speed: float | None = None  # safety net; default from the domain height
+    rest_volume: float | None = None  # V = 1 / n0; None: from a lattice of spacing 2 r
 
     def validate(self):
         from ..errors import InputError
@@ -84,14 +85,19 @@ class DFSPHParams:
             raise InputError("dfsph", f"xsph must be in [0, 1], got {self.xsph}")
         if not (math.isfinite(self.viscosity) and self.viscosity >= 0):
             raise InputError("dfsph", f"viscosity must be >= 0, got {self.viscosity}")
+        if self.rest_volume is not None and not (math.isfinite(self.rest_volume) and self.rest_volume > 0):
+            raise InputError("dfsph", f"rest_volume must be a positive number, got {self.rest_volume}")
 
 
 class DFSPH(SolverBase):
     name = "dfsph"
 
     def __init__(self, params: DFSPHParams, domain: Domain, *, device="cpu", dtype=torch.float32):
-        super().__init__(params, domain, lambda h, d: lattice_volume(kernels.WENDLAND.W, h, d),
-                         device=device, dtype=dtype, kernel=kernels.WENDLAND)
+        r = params.particle_radius
+        lattice_V = lattice_volume(kernels.WENDLAND.W, 4.0 * r, 2.0 * r) if r > 0 and math.isfinite(r) else 1.0
+        super().__init__(params, domain, lambda h, d: params.rest_volume or lattice_V,
+                         device=device, dtype=dtype, kernel=kernels.WENDLAND,
+                         measure_scale=(params.rest_volume or lattice_V) / lattice_V)
         self.warm = 0.5  # warm start: half the previous step's kappa (as SPlisHSPlasH does)
         self.margin = 0.1 * self.spacing  # the box mirror is only a safety net: walls hold the fluid
         self._kappa = self._kappa_v = None
@@ -103,6 +109,15 @@ class DFSPH(SolverBase):
         P = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
         gl = self.V * self.kernel.grad(P, P.norm(dim=-1).clamp_min(1e-12), self.h)
         self._alpha_lattice = float(1.0 / (gl ** 2).sum())
+
+    @classmethod
+    def from_positions(cls, positions, domain: Domain, *, rest_density: float = 1000.0, device="cpu",
+                       dtype=torch.float32, **overrides) -> "DFSPH":
+        """A DFSPH solver for an arbitrary particle set (``common.estimate_rest_state``)."""
+        spacing, V = estimate_rest_state(positions, kernels.WENDLAND.W, "dfsph")
+        params = DFSPHParams(particle_radius=spacing / 2.0, rest_density=rest_density, rest_volume=V,
+                             **overrides)
+        return cls(params, domain, device=device, dtype=dtype)
 
     def reset(self):
         self._kappa = self._kappa_v = None

@@ -31,8 +31,8 @@ import torch
 from ..errors import InputError
 from ..neighbors import neighbor_pairs
 from . import kernels
-from .common import (Domain, SolverBase, enforce_box, even_step, implicit_viscosity, lattice_volume,
-                     limit_speed, xsph)
+from .common import (Domain, SolverBase, enforce_box, estimate_rest_state, even_step, implicit_viscosity,
+                     lattice_volume, limit_speed, xsph)
 
 
 @dataclass
@@ -90,34 +90,9 @@ class PBF(SolverBase):
     @classmethod
     def from_positions(cls, positions, domain: Domain, *, rest_density: float = 1000.0, device="cpu",
                        dtype=torch.float32, **overrides) -> "PBF":
-        """A PBF solver for an arbitrary particle set: spacing from the median nearest-neighbour
-        distance, rest volume from the median density of the better-filled half of the particles
-        (interior particles; the surface ones have fewer neighbours)."""
-        x = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
-        if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 2:
-            raise InputError("pbf", f"need (N >= 2, 3) positions to estimate a rest state, got {tuple(x.shape)}")
-        if not torch.isfinite(x).all():
-            raise InputError("pbf", "positions contain NaN or infinite values")
-        span = float((x.max(0).values - x.min(0).values).max())
-        radius = max(span, 1e-6)
-        for _ in range(30):  # grow until most particles have a neighbour
-            i, j = neighbor_pairs(x, radius * 0.05)
-            if i.numel() >= x.shape[0]:
-                break
-            radius *= 2
-        d = (x[i] - x[j]).norm(dim=-1)
-        nn = torch.full((x.shape[0],), float("inf"), dtype=torch.float64).scatter_reduce(0, i, d, "amin")
-        nn = nn[torch.isfinite(nn) & (nn > 0)]
-        if nn.numel() == 0:
-            raise InputError("pbf", "particles are all coincident or isolated; cannot estimate a spacing")
-        spacing = float(nn.median())
-        h = 2.0 * spacing
-        i, j = neighbor_pairs(x, h)
-        dens = torch.full((x.shape[0],), float(kernels.poly6(torch.tensor(0.0), h)), dtype=torch.float64)
-        dens.index_add_(0, i, kernels.poly6((x[i] - x[j]).norm(dim=-1), h))
-        interior = dens >= dens.median()
-        n0 = float(dens[interior].median())
-        params = PBFParams(particle_radius=spacing / 2.0, rest_density=rest_density, rest_volume=1.0 / n0,
+        """A PBF solver for an arbitrary particle set (``common.estimate_rest_state``)."""
+        spacing, V = estimate_rest_state(positions, kernels.poly6, "pbf")
+        params = PBFParams(particle_radius=spacing / 2.0, rest_density=rest_density, rest_volume=V,
                            **overrides)
         return cls(params, domain, device=device, dtype=dtype)
 

@@ -1,6 +1,6 @@
 """Render a reconstruction with the Blender extension in two looks (the README's pictures).
 
-    python scripts/addon_showcase.py ZIP RUN/recon.h5 DATASET OUT_DIR [--time 0.5] [--res 400] [--samples 64]
+    python render_data/showcase.py ZIP RUN/recon.h5 DATASET OUT_DIR [--time 0.5] [--res 400] [--samples 64]
 
 Runs under the bpy module: installs the extension zip as a user does, builds the dataset
 renderer's world, tank and the dataset's held-out camera (render_data/scene_builder), imports the
@@ -24,6 +24,7 @@ def main(argv):
     p.add_argument("--res", type=int, default=400)
     p.add_argument("--samples", type=int, default=64)
     p.add_argument("--looks", default="water,pink")
+    p.add_argument("--fps", type=float, default=30.0, help="scene frame rate the time maps onto")
     a = p.parse_args(argv)
     import bpy
     from mathutils import Matrix
@@ -44,7 +45,7 @@ def main(argv):
     sc = bpy.context.scene
     sc.camera = cam
     sc.render.film_transparent = False  # show the world, unlike the training images
-    fps = 30
+    fps = int(round(a.fps))
     sc.render.fps = fps
     sc.frame_start = 1
     bpy.ops.import_scene.gaussfluids(filepath=a.recon, preset="water", fps=fps, start_frame=1)
