@@ -75,6 +75,8 @@ class Demo:
     def __init__(self, out: Path, sizes: Sizes, device: str, force: bool):
         self.out, self.z, self.device, self.force = out, sizes, device, force
         self.state_file = out / "demo_state.json"
+        self.sim, self.dataset = out / "sim.h5", out / "dataset"
+        self.run_dir, self.pred_dir = out / "run", out / "predict"
         self.settings = {"sizes": asdict(sizes), "device": device}
         st = {}
         if self.state_file.exists():
@@ -85,23 +87,6 @@ class Demo:
         self.done = st.get("done", {}) if st.get("settings") == self.settings and not force else {}
         self.redo_rest = False
         self.summary: dict = {}
-
-    # paths
-    @property
-    def sim(self):
-        return self.out / "sim.h5"
-
-    @property
-    def dataset(self):
-        return self.out / "dataset"
-
-    @property
-    def run_dir(self):
-        return self.out / "run"
-
-    @property
-    def pred_dir(self):
-        return self.out / "predict"
 
     def outputs(self, stage: str) -> list[Path]:
         return {"simulate": [self.sim], "render": [self.dataset / "transforms_train.json",
@@ -275,11 +260,9 @@ def render_looks(d: Demo, t: float, z: Sizes) -> dict:
     bdir = d.out / "blender"
     cache = Path(os.environ.get("GF_WHEEL_CACHE", Path.home() / ".cache" / "gaussfluids" / "wheels"))
     zip_path = build(bdir, [plat], cache)
-    script = Path(__file__).resolve().parent.parent / "render_data" / "showcase.py"
-    if not script.exists():
-        import render_data
+    import render_data
 
-        script = Path(render_data.__file__).with_name("showcase.py")
+    script = Path(render_data.__file__).with_name("showcase.py")
     env = dict(os.environ, HOME=str((bdir / "home").resolve()))
     cmd = [sys.executable, str(script), str(zip_path), str(d.run_dir / "recon.h5"), str(d.dataset), str(bdir),
            "--time", f"{t:.6f}", "--res", str(z.look_resolution), "--samples", str(z.look_samples),

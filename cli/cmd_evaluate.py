@@ -68,16 +68,6 @@ def run(args) -> int:
         train = load_dataset(ds_path, **kw)
         if (ds_path / "transforms_test.json").exists() or any(ds_path.glob("view_*/transforms_test.json")):
             test = load_dataset(ds_path, split="test", **kw)
-    if not continuation and r.decoder is not None:  # frames outside the reconstructed clip were never fitted
-        lo, hi = r.time_min - 1e-6, r.time_max + 1e-6
-        inside = [t for t in train.times if lo <= t <= hi] if train is not None else []
-        if train is not None and len(inside) < len(train.times):
-            print(f"evaluating the {len(inside)} of {len(train.times)} frame times inside the reconstructed clip "
-                  f"[{r.time_min:g}, {r.time_max:g}] s (predict continues past it)")
-            if not inside:
-                raise InputError(ds_path, "none of its frame times lies inside the reconstructed clip")
-            train = train.with_times(inside)
-            test = test.with_times(inside) if test is not None else None
     if continuation:
         evaluate_continuation(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out)
     else:

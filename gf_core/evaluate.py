@@ -71,6 +71,16 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
     r = read_recon(recon_path)
     model = FluidModel.from_recon(r, device=device)
     result = {"recon": str(recon_path), "particles": len(model), "dynamic": model.is_dynamic}
+    if model.is_dynamic and dataset is not None and len(dataset):  # frames outside the clip were never fitted (predict goes there)
+        inside = [t for t in dataset.times if r.time_min - 1e-6 <= t <= r.time_max + 1e-6]
+        if not inside:
+            raise InputError(dataset.root, "none of its frame times lies inside the reconstructed clip "
+                                           f"[{r.time_min:g}, {r.time_max:g}] s")
+        if len(inside) < len(dataset.times):
+            log(f"evaluating the {len(inside)} of {len(dataset.times)} frame times inside the reconstructed clip "
+                f"[{r.time_min:g}, {r.time_max:g}] s")
+            dataset = dataset.with_times(inside)
+            test_dataset = test_dataset.with_times(inside) if test_dataset is not None else None
     if dataset is not None:
         for name, ds in (("train", dataset), ("test", test_dataset)):
             if ds is None or len(ds) == 0:

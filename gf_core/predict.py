@@ -162,22 +162,19 @@ def add_box(s: State, lo, hi, spacing: float, velocity=(0.0, 0.0, 0.0)) -> State
     takes the appearance of its nearest existing one and starts with ``velocity``."""
     from .metrics import nearest_distance
 
+    if len(s) == 0:
+        raise InputError("--add-box", "there is no particle left to take an appearance from")
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     axes = [np.arange(lo[k] + 0.5 * spacing, hi[k], spacing) for k in range(3)]
     if any(a.size == 0 for a in axes):
         raise InputError("--add-box", f"the box {lo.tolist()}..{hi.tolist()} holds no lattice point at spacing "
                                       f"{spacing:.4g} m")
     p = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    if len(s):
-        d = nearest_distance(torch.as_tensor(p), torch.as_tensor(s.positions), 2 * spacing).numpy()
-        p = p[d >= spacing]
+    d = nearest_distance(torch.as_tensor(p), torch.as_tensor(s.positions), 2 * spacing).numpy()
+    p = p[d >= spacing]
     if p.shape[0] == 0:
         raise InputError("--add-box", "every lattice point of the box is already occupied by fluid")
-    if len(s):
-        src = nearest_index(p, s.positions)
-        src_index = s.source_index[src]
-    else:
-        raise InputError("--add-box", "there is no particle left to take an appearance from")
+    src_index = s.source_index[nearest_index(p, s.positions)]
     v = np.broadcast_to(np.asarray(velocity, np.float64), p.shape)
     return replace(s, positions=np.concatenate([s.positions, p]), velocities=np.concatenate([s.velocities, v]),
                    source_index=np.concatenate([s.source_index, src_index]),
