@@ -76,6 +76,13 @@ def register(sub):
                    help="instead of the accuracy sweep: prediction error against simulation cost (each solver setting "
                         "continues a reference water_sphere run (first --particles count) from frame 6 for 12 "
                         "frames, as gf-cli predict does; Chamfer vs the reference against wall-clock seconds)")
+    q.add_argument("--engine", action="store_true",
+                   help="instead of the accuracy sweep: DFSPH at its defaults with each --backends pair-sum path at each "
+                        "--particles count (seconds per simulated second, density error, growth with N), and the "
+                        "neighbour search alone over --neighbours particles")
+    q.add_argument("--backends", default="native,torch", help="with --engine: comma-separated (default native,torch)")
+    q.add_argument("--neighbours", type=int, default=50000,
+                   help="with --engine: particles for the neighbour-search timing, K = 64 (default 50000; 0 skips it)")
     q.add_argument("--out", type=Path, default=Path("bench_sim"), help="output folder (JSON + PNG)")
     q.set_defaults(func=run_sim)
     g = bsub.add_parser("gpu", help="CUDA figures: renderer fwd+bwd (vs gsplat if installed), K-nearest SPH density",
@@ -86,6 +93,8 @@ def register(sub):
     g.add_argument("--resolution", type=int, default=400, help="image width and height (default 400)")
     g.add_argument("--k", type=int, default=64, help="neighbours for the density (default 64)")
     g.add_argument("--repeats", type=int, default=50, help="timed repeats, median reported (default 50)")
+    g.add_argument("--tiles", default="8,16", help="renderer tile sizes to time, comma-separated; the first is "
+                                                   "profiled and compared with gsplat (default 8,16)")
     g.add_argument("--out", type=Path, default=Path("bench_gpu.json"), help="JSON output (default bench_gpu.json)")
     g.set_defaults(func=run_gpu)
     c = bsub.add_parser("reconstruct", help="whole method: held-out PSNR and particle error against run time",
@@ -172,7 +181,30 @@ def run_sim(args) -> int:
     _check_common(args, out_is_file=False)
     args.out.mkdir(parents=True, exist_ok=True)
     out = {"machine": machine()}
-    if args.prediction:
+    if args.engine:
+        from gf_core.bench.sim_bench import bench_engine, bench_neighbours, plot_engine
+
+        backends = [b for b in args.backends.split(",") if b]
+        for b in backends:
+            if b not in ("native", "torch"):
+                raise InputError("--backends", f"unknown backend {b!r} (native, torch)")
+        if args.neighbours < 0:
+            raise InputError("--neighbours", f"must be >= 0, got {args.neighbours}")
+        eng = bench_engine(counts, backends, scene=args.scene, seconds=args.seconds)
+        out["engine"] = eng
+        print()
+        print(table(eng, [("backend", "backend", "s"), ("particles", "N", "d"), ("steps", "steps", "d"),
+                          ("wall_s", "wall s", ".2f"), ("wall_per_sim_s", "s per sim s", ".1f"),
+                          ("time_vs_first_backend", f"time / {backends[0]}", ".2f"),
+                          ("growth_exponent", "cost ~ N^", ".2f"), ("iterations_mean", "iters", ".1f"),
+                          ("ms_per_iteration", "ms/iteration", ".2f"),
+                          ("iteration_growth_exponent", "per-iteration ~ N^", ".2f"),
+                          ("density_err_mean", "mean rho err", ".2e")]))
+        plot_engine(eng, args.out / "engine_cost_vs_particles.png")
+        if args.neighbours:
+            print()
+            out["neighbours"] = bench_neighbours(args.neighbours)
+    elif args.prediction:
         from gf_core.bench.sim_bench import bench_prediction, plot_prediction
 
         pred = bench_prediction(solvers, counts[0], device=args.device)
@@ -258,7 +290,11 @@ def run_gpu(args) -> int:
     for name in ("particles", "resolution", "k", "repeats"):
         if getattr(args, name) < 1:
             raise InputError(f"--{name}", f"must be >= 1, got {getattr(args, name)}")
-    rec = {"machine": machine(), "renderer": bench_renderer(args.particles, args.resolution, args.repeats),
+    tiles = _ints(args.tiles, "--tiles")
+    for t in tiles:
+        if t < 1 or (t * t) % 32:
+            raise InputError("--tiles", f"tile {t}: tile * tile must be a positive multiple of 32 (8, 16, 24, ...)")
+    rec = {"machine": machine(), "renderer": bench_renderer(args.particles, args.resolution, args.repeats, tiles),
            "density": bench_density(args.particles, args.k, args.repeats)}
     atomic_write_text(args.out, json.dumps(rec, indent=1))
     print(f"wrote {args.out}")

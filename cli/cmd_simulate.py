@@ -24,6 +24,13 @@ def register(sub):
     p.add_argument("--settle", type=float, default=None, metavar="S",
                    help="seconds of damped settling before t = 0, from which the fluid starts at rest "
                         "(default: the scene's; hydrostatic_tank 6, others 0)")
+    p.add_argument("--viscosity", type=float, default=None, metavar="NU",
+                   help="kinematic viscosity in m^2/s, solved implicitly (default: the scene material's)")
+    p.add_argument("--viscosity-boundary", choices=("free-slip", "no-slip"), default=None,
+                   help="whether the viscosity also acts against the walls (no-slip) or not (free-slip); default: "
+                        "the material's (water free-slip, honey no-slip)")
+    p.add_argument("--backend", choices=("auto", "native", "torch"), default="auto",
+                   help="DFSPH pair sums: native C++ (CPU), the torch reference, or auto (native where built)")
     p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=run)
@@ -58,10 +65,26 @@ def check_options(args) -> None:
         raise InputError("--settle", f"must be >= 0 seconds, got {args.settle}")
     if args.particles is not None and args.particles < 1:
         raise InputError("--particles", f"must be >= 1, got {args.particles}")
+    if args.viscosity is not None and not (args.viscosity >= 0 and args.viscosity != float("inf")):
+        raise InputError("--viscosity", f"must be >= 0 m^2/s, got {args.viscosity}")
+    if args.backend != "auto" and args.solver != "dfsph":
+        raise InputError("--backend", f"chooses DFSPH's pair sums; the {args.solver} solver has no such option")
     from .cmd_reconstruct import check_device
 
     check_device(args.device)
     check_out_file(args.out)
+
+
+def _overrides(args) -> dict:
+    """Solver settings given on the command line (the rest come from the scene)."""
+    out = {}
+    if args.viscosity_boundary is not None:
+        out["viscosity_boundary"] = args.viscosity_boundary
+    if args.viscosity is not None:
+        out["viscosity"] = args.viscosity
+    if args.backend != "auto":
+        out["backend"] = args.backend
+    return out
 
 
 def run(args) -> int:
@@ -87,7 +110,8 @@ def run(args) -> int:
     try:
         sim, res = simulate(args.scene, solver=args.solver, particles=args.particles, fps=args.fps,
                             seconds=args.seconds, device=args.device, progress=progress,
-                            settle_seconds=args.settle, out=args.out)  # written frame by frame
+                            settle_seconds=args.settle, out=args.out,  # written frame by frame
+                            **_overrides(args))
     except KeyboardInterrupt:
         if bar:
             bar.close()

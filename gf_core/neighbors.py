@@ -1,5 +1,8 @@
-"""Fixed-radius neighbour search on a uniform grid (cell lists built by sorting), vectorised in
-torch for CPU and CUDA tensors. No O(N^2) step: each query looks only at its 27 surrounding cells.
+"""Fixed-radius and K-nearest neighbour search on a uniform grid: each query looks only at its 27
+surrounding cells, no O(N^2) step. Two implementations with the same results: the native hashed
+grid (``csrc/sim_cpu.cpp`` for CPU pairs, ``csrc/sph_*`` for K-nearest on CPU and CUDA), used by
+default where it is built, and a vectorised torch grid (cell lists built by sorting), the
+reference, which also serves CUDA tensors for pairs.
 """
 
 from __future__ import annotations
@@ -10,10 +13,80 @@ import torch
 _OFFSETS = torch.tensor([[i, j, -1] for i in (-1, 0, 1) for j in (-1, 0, 1)], dtype=torch.int64)
 
 
+def _use_native(backend: str, x: torch.Tensor) -> bool:
+    if backend not in ("auto", "native", "torch"):
+        raise ValueError(f"unknown neighbour backend {backend!r} (auto, native, torch)")
+    if backend == "torch":
+        return False
+    from .render import native
+
+    ok = x.device.type == "cpu" and native.available()
+    if backend == "native" and not ok:
+        raise RuntimeError(f"native neighbour lists run on CPU tensors with the native extension built "
+                           f"({x.device.type} tensor; {native.unavailable_reason() or 'built'})")
+    return ok
+
+
+def build_grid(y: torch.Tensor, radius: float) -> list:
+    """The native grid over ``y`` (cells of size ``radius``), to pass to ``neighbor_lists`` again
+    and again while ``y`` does not move (e.g. a container's wall particles)."""
+    from .render import native
+
+    if not radius > 0:
+        raise ValueError(f"neighbour radius must be positive, got {radius}")
+    return native.load().grid_build(y.detach().contiguous(), float(radius))
+
+
+def neighbor_lists(x: torch.Tensor, radius: float, y: torch.Tensor | None = None, *, grid: list | None = None):
+    """Native CPU neighbour lists in CSR form: (rowptr (N+1,), col (P,)) int64, the neighbours j of
+    x_i (|x_i - y_j| < radius, j != i when ``y`` is None) in col[rowptr[i]:rowptr[i+1]],
+    ascending. ``grid``: ``build_grid(y, radius)`` made beforehand (static ``y``)."""
+    from .render import native
+
+    if not radius > 0:
+        raise ValueError(f"neighbour radius must be positive, got {radius}")
+    same = y is None
+    y = x if same else y
+    rowptr, col = native.load().radius_pairs(x.detach().contiguous(), y.detach().contiguous(),
+                                             [] if grid is None else grid, float(radius), same)
+    return rowptr, col
+
+
+def csr_rows(rowptr: torch.Tensor) -> torch.Tensor:
+    """The row index of every entry of a CSR list (the i of each pair)."""
+    n = rowptr.shape[0] - 1
+    return torch.repeat_interleave(torch.arange(n, device=rowptr.device), rowptr[1:] - rowptr[:-1])
+
+
 def neighbor_pairs(x: torch.Tensor, radius: float, y: torch.Tensor | None = None, *,
-                   include_self: bool = False, chunk: int = 1 << 16):
+                   include_self: bool = False, backend: str = "auto", chunk: int = 1 << 16):
     """Pairs (i, j) with |x_i - y_j| < radius. ``y`` defaults to ``x``; then i != j unless
-    ``include_self``. Returns int64 index tensors (i sorted ascending) on x's device."""
+    ``include_self``. Returns int64 index tensors (i sorted ascending) on x's device.
+    ``backend``: "native" (CPU, ``neighbor_lists``; j ascending within each i), "torch" (the
+    reference below, any device) or "auto" (native where it can)."""
+    if not radius > 0:
+        raise ValueError(f"neighbour radius must be positive, got {radius}")
+    if x.shape[0] and _use_native(backend, x) and (y is None or y.device.type == "cpu"):
+        if not torch.isfinite(x).all() or (y is not None and not torch.isfinite(y).all()):
+            raise ValueError("neighbor_pairs: positions contain NaN or infinite values")
+        if y is not None and y.dtype != x.dtype:
+            y = y.to(x.dtype)
+        rowptr, col = neighbor_lists(x, radius, y)
+        i = csr_rows(rowptr)
+        if include_self and y is None:  # the lists leave i out of its own row
+            n = x.shape[0]
+            ar = torch.arange(n)
+            i, col = torch.cat([i, ar]), torch.cat([col, ar])
+            order = torch.argsort(i * n + col)
+            i, col = i[order], col[order]
+        return i, col
+    return neighbor_pairs_torch(x, radius, y, include_self=include_self, chunk=chunk)
+
+
+def neighbor_pairs_torch(x: torch.Tensor, radius: float, y: torch.Tensor | None = None, *,
+                         include_self: bool = False, chunk: int = 1 << 16):
+    """The pure-torch ``neighbor_pairs`` (CPU and CUDA; the reference the native one is tested
+    against)."""
     same = y is None
     y = x if same else y
     dev = x.device

@@ -36,11 +36,11 @@ def scene(n, *, dtype, degree=1, channels=3, seed=0, spread=1.2, log_scale=-2.6)
             torch.randn(n, (degree + 1) ** 2, channels, generator=g, dtype=torch.float64) * 0.3]
 
 
-def run(params, camera, device, dtype, *, depth=True, seed=3):
+def run(params, camera, device, dtype, *, depth=True, seed=3, tile=None):
     ps = [p.to(device=device, dtype=dtype).detach().clone().requires_grad_(True) for p in params]
     ch = params[4].shape[2]
     out = render(*ps, camera, background=torch.full((ch,), 0.25, dtype=dtype, device=device), backend="native",
-                 return_depth=depth)
+                 return_depth=depth, tile_size=tile)
     g = torch.Generator().manual_seed(seed)
     w = torch.randn(out.color.shape, generator=g, dtype=torch.float32).to(device=device, dtype=dtype)
     loss = (out.color * w).sum() + (out.alpha ** 2).sum() + (0.1 * out.depth.sum() if depth else 0)
@@ -70,6 +70,21 @@ def test_cuda_matches_cpu(n, W, H, degree, channels, dtype):
     for k, (a, b) in enumerate(zip(p_gpu, p_cpu)):
         assert rel_norm(a.grad, b.grad) < tol, ("means", "scales", "quats", "opacities", "sh")[k]
     assert rel_norm(o_gpu.means2d.grad, o_cpu.means2d.grad) < tol
+
+
+@pytest.mark.parametrize("n, W, H", [(2000, 97, 80), (50000, 400, 400)])
+def test_cuda_tile16_matches_cpu(n, W, H):
+    """The image does not depend on the tile size: CUDA with 16x16 tiles (8x8 is its default) against
+    the CPU's 16x16."""
+    dtype = torch.float32
+    params = scene(n, dtype=dtype, seed=n % 5)
+    c = cam(W, H, fx=0.9 * W)
+    o_cpu, p_cpu = run(params, c, "cpu", dtype)
+    o_gpu, p_gpu = run(params, c, "cuda", dtype, tile=16)
+    for name in ("color", "alpha", "depth"):
+        assert rel_norm(getattr(o_gpu, name), getattr(o_cpu, name)) < 1e-4, name
+    for k, (a, b) in enumerate(zip(p_gpu, p_cpu)):
+        assert rel_norm(a.grad, b.grad) < 1e-4, ("means", "scales", "quats", "opacities", "sh")[k]
 
 
 def test_cuda_robustness():

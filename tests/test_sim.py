@@ -289,3 +289,29 @@ def test_simulate_cli_settle_option(tmp_path):
     assert np.abs(sim.velocities[0]).max() == 0.0
     lattice = initial_state("hydrostatic_tank", particles=300)[1]
     assert np.abs(sim.positions[0] - lattice).max() > 0.01 * 2 * sim.particle_radius
+
+
+@pytest.mark.parametrize("solver", ["dfsph", "pbf"])
+def test_viscosity_boundary_free_slip_keeps_sliding_no_slip_brakes(solver):
+    """A slab of viscous fluid sliding along the floor: with free-slip walls (the default) the
+    viscosity only shears the fluid internally, so a uniform slide keeps its speed; no-slip walls
+    brake the particles next to the floor."""
+    domain = Domain((0.0, 0.0, 0.0), (1.0, 0.4, 0.3))
+    s = 0.02
+    ax = [np.arange(0.2, 0.8, s) + s / 2, np.arange(0.0, 0.4, s) + s / 2, np.arange(0.0, 0.08, s) + s / 2]
+    x0 = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    speed = {}
+    for boundary in ("free-slip", "no-slip"):
+        sol = make_solver(solver, s / 2, domain, {"rest_density": 1000.0, "viscosity": 0.05, "xsph": 0.0},
+                          viscosity_boundary=boundary)
+        x = torch.tensor(x0, dtype=torch.float32)
+        v = torch.zeros_like(x)
+        v[:, 0] = 0.5
+        t = 0.0
+        while t < 0.05 - 1e-9:
+            t += sol.step(x, v, 0.05 - t)["dt"]
+        speed[boundary] = float(v[:, 0].mean())
+    assert speed["free-slip"] > 0.45, speed
+    assert speed["no-slip"] < 0.8 * speed["free-slip"], speed
+    with pytest.raises(InputError, match="viscosity_boundary"):
+        make_solver(solver, s / 2, domain, {"rest_density": 1000.0}, viscosity_boundary="sticky")

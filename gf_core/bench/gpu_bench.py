@@ -17,6 +17,7 @@ import torch
 from ..losses import density_uniformity, sph_density_knn
 from ..neighbors import knn
 from ..render import render
+from ..render.constants import TILE_SIZE, TILE_SIZE_CUDA
 from .common import median_time
 from .render_bench import bench_scene
 
@@ -25,18 +26,25 @@ def _sync():
     torch.cuda.synchronize()
 
 
-def bench_renderer(n: int = 50000, res: int = 400, repeats: int = 50, log=print) -> dict:
+def bench_renderer(n: int = 50000, res: int = 400, repeats: int = 50, tiles=(TILE_SIZE_CUDA, TILE_SIZE), log=print) -> dict:
+    """Ours at each tile size in ``tiles`` (the first is the one compared with gsplat and profiled)."""
     cam, params = bench_scene(n, res, res, device="cuda")
+    tile = tiles[0]
 
-    def ours():
+    def ours(tile=tile):
         ps = [p.detach().clone().requires_grad_(True) for p in params]
-        out = render(*ps, cam, backend="native")
+        out = render(*ps, cam, backend="native", tile_size=tile)
         (out.color.sum() + out.alpha.sum()).backward()
         return out
 
-    rec = {"particles": n, "resolution": res, "device": torch.cuda.get_device_name(0)}
-    rec["ours_forward_s"] = median_time(lambda: render(*params, cam, backend="native"), repeats, warmup=3, sync=_sync)
-    rec["ours_fwd_bwd_s"] = median_time(ours, repeats, warmup=3, sync=_sync)
+    rec = {"particles": n, "resolution": res, "device": torch.cuda.get_device_name(0), "tile": tile}
+    for t in tiles:
+        fwd = median_time(lambda: render(*params, cam, backend="native", tile_size=t), repeats, warmup=3, sync=_sync)
+        both = median_time(lambda: ours(t), repeats, warmup=3, sync=_sync)
+        rec[f"tile{t}"] = {"forward_s": fwd, "fwd_bwd_s": both}
+        log(f"ours, tile {t}: forward {1e3 * fwd:.3f} ms, forward+backward {1e3 * both:.3f} ms")
+    rec["ours_forward_s"] = rec[f"tile{tile}"]["forward_s"]
+    rec["ours_fwd_bwd_s"] = rec[f"tile{tile}"]["fwd_bwd_s"]
     out = ours()
     rec["visible"] = int((out.radii > 0).sum())
     # where the time goes: kernel time against wall time (one profiled fwd+bwd after warm-up)
@@ -52,8 +60,8 @@ def bench_renderer(n: int = 50000, res: int = 400, repeats: int = 50, log=print)
     # (autograd Function entries carry their kernels' device time too: read the kernel lines)
     rec["device_time_us_per_iteration"] = {e.key[:60]: round(e.self_device_time_total / 5, 1) for e in kern[:14]}
     log("device time per fwd+bwd (us): " + ", ".join(f"{k}={v}" for k, v in rec["device_time_us_per_iteration"].items()))
-    log(f"ours: forward {1e3 * rec['ours_forward_s']:.3f} ms, forward+backward {1e3 * rec['ours_fwd_bwd_s']:.3f} ms "
-        f"({rec['visible']} visible)")
+    log(f"ours (tile {tile}): forward {1e3 * rec['ours_forward_s']:.3f} ms, forward+backward "
+        f"{1e3 * rec['ours_fwd_bwd_s']:.3f} ms ({rec['visible']} visible)")
     try:
         import gsplat
         from gsplat import rasterization
@@ -77,7 +85,7 @@ def bench_renderer(n: int = 50000, res: int = 400, repeats: int = 50, log=print)
     rec["gsplat_fwd_bwd_s"] = median_time(theirs, repeats, warmup=3, sync=_sync)
     with torch.no_grad():
         img, alpha = theirs(False)
-        mine = render(*params, cam, backend="native")
+        mine = render(*params, cam, backend="native", tile_size=tile)
     rec["max_abs_diff_vs_gsplat"] = float((img[0] - mine.color).abs().max())
     rec["mean_abs_diff_vs_gsplat"] = float((img[0] - mine.color).abs().mean())
     rec["ratio_fwd_bwd_ours_over_gsplat"] = rec["ours_fwd_bwd_s"] / rec["gsplat_fwd_bwd_s"]

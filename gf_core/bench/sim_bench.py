@@ -1,4 +1,6 @@
-"""``gf-cli bench sim``: each solver over a sweep of accuracy settings and particle counts.
+"""``gf-cli bench sim``: each solver over a sweep of accuracy settings and particle counts;
+``--engine``: DFSPH's native and torch paths side by side over particle counts, and the neighbour
+search alone.
 
 Per run: the density error measured independently after every step (mean and max of
 max(rho/rho0 - 1, 0) with the cubic spline, walls included), mechanical energy, and wall time.
@@ -50,6 +52,84 @@ def bench_sim(solvers, counts, *, scene: str = "dam_break", seconds: float = 0.5
     return records, traces
 
 
+def bench_engine(counts, backends=("native", "torch"), *, scene: str = "dam_break", seconds: float = 0.1,
+                 fps: float = 50.0, log=print):
+    """DFSPH at its defaults (0.01 % density tolerance, CFL 0.4) on ``scene`` for each particle count
+    and pair-sum backend: wall seconds per simulated second (the run, not the settling before it),
+    the independently measured density error, steps and Jacobi iterations; the ratio of each
+    backend's time to the first's, and how the cost grows with the particle count (the exponent
+    between consecutive counts)."""
+    records = []
+    for n in counts:
+        for be in backends:
+            sim, res = simulate(scene, solver="dfsph", particles=n, fps=fps, seconds=seconds, backend=be)
+            steps = res.steps
+            wall = steps[-1]["wall_s"] if steps else 0.0
+            rec = {"scene": scene, "backend": be, "particles": sim.num_particles, "simulated_s": seconds,
+                   "steps": len(steps), "wall_s": wall, "wall_per_sim_s": wall / seconds,
+                   "density_err_mean": float(np.mean([s["density_err_mean"] for s in steps])),
+                   "iterations_mean": float(np.mean([s["iterations"] for s in steps])),
+                   "divergence_iterations_mean": float(np.mean([s["divergence_iterations"] for s in steps]))}
+            # the cost of one Jacobi iteration (both solves): steps and iterations per simulated second grow
+            # with N by themselves (dt ~ spacing, deeper columns need more iterations)
+            total_it = sum(s["iterations"] + s["divergence_iterations"] for s in steps)
+            rec["ms_per_iteration"] = 1e3 * wall / max(total_it, 1)
+            first = next(r for r in records + [rec] if r["particles"] == rec["particles"])
+            rec["time_vs_first_backend"] = wall / first["wall_s"] if first["wall_s"] > 0 else float("nan")
+            prev = [r for r in records if r["backend"] == be]
+            if prev and prev[-1]["particles"] != rec["particles"] and prev[-1]["wall_per_sim_s"] > 0:
+                lnN = np.log(rec["particles"] / prev[-1]["particles"])
+                rec["growth_exponent"] = float(np.log(rec["wall_per_sim_s"] / prev[-1]["wall_per_sim_s"]) / lnN)
+                rec["iteration_growth_exponent"] = float(np.log(rec["ms_per_iteration"] / prev[-1]["ms_per_iteration"])
+                                                         / lnN)
+            records.append(rec)
+            log(f"dfsph {be:>6} N={rec['particles']:<6} {wall:7.2f} s for {seconds} s simulated "
+                f"({rec['wall_per_sim_s']:.1f} s per simulated s), {len(steps)} steps, "
+                f"{rec['iterations_mean']:.1f} density iterations, mean rho err {100 * rec['density_err_mean']:.3f}%")
+    return records
+
+
+def bench_neighbours(n: int = 50000, k: int = 64, repeats: int = 7, log=print) -> list:
+    """The neighbour search alone on ``n`` particles jittered on a lattice of spacing s (shuffled:
+    input order is not spatial), h = 2.5 s (about 60 neighbours): native K-nearest (sorted rows and
+    not), native fixed-radius CSR lists, the native kernel sum, the torch grid, and scipy's cKDTree
+    when scipy is installed."""
+    import math
+
+    import torch
+
+    from ..neighbors import knn, knn_torch, neighbor_lists, neighbor_pairs_torch
+    from ..render import native
+    from .common import median_time
+
+    side = math.ceil(n ** (1 / 3))
+    g = torch.Generator().manual_seed(0)
+    ax = torch.arange(side, dtype=torch.float32)
+    P = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)[:n]
+    x = ((P + 0.2 * torch.randn(P.shape, generator=g)) * 0.01)[torch.randperm(n, generator=g)].contiguous()
+    h = 0.025
+    ops = [("native knn, rows sorted", lambda: knn(x, k, h, backend="native")),
+           ("native knn, rows unsorted", lambda: knn(x, k, h, backend="native", sorted=False)),
+           ("native radius lists (CSR)", lambda: neighbor_lists(x, h)),
+           ("native kernel sum (no pairs stored)", lambda: native.load().kernel_sum(x, x, [], h, 1, True)),
+           ("torch grid radius pairs", lambda: neighbor_pairs_torch(x, h)),
+           ("torch grid knn", lambda: knn_torch(x, k, h))]
+    try:
+        from scipy.spatial import cKDTree
+
+        xn = x.numpy()
+        ops.append(("scipy cKDTree build + query (k+1, workers=2)",
+                    lambda: cKDTree(xn).query(xn, k=k + 1, distance_upper_bound=h, workers=2)))
+    except ImportError:
+        pass
+    rows = []
+    for name, f in ops:
+        t = median_time(f, repeats if not name.startswith("torch") else 3, warmup=1)
+        rows.append({"operation": name, "particles": n, "k": k, "seconds": t})
+        log(f"{name:<46} {1e3 * t:8.1f} ms")
+    return rows
+
+
 def bench_prediction(solvers, particles: int, *, scene: str = "water_sphere", start_frame: int = 6,
                      frames: int = 12, fps: float = 30.0, noise: float = 0.0, device: str = "cpu", log=print):
     """Prediction error against simulation cost: a reference run of ``scene`` (DFSPH at its
@@ -91,6 +171,32 @@ def bench_prediction(solvers, particles: int, *, scene: str = "water_sphere", st
             log(f"{solver:>6} {label:<20} {rep['wall_seconds']:6.1f} s  Chamfer after {frames} frames "
                 f"{err[-1]['chamfer']:.3f} spacings (reference: dfsph {ref_label})")
     return records
+
+
+def plot_engine(records, path):
+    """Seconds per simulated second against particle count (log-log) and density error against
+    seconds, one line per backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for be in dict.fromkeys(r["backend"] for r in records):
+        rs = [r for r in records if r["backend"] == be]
+        ax[0].plot([r["particles"] for r in rs], [r["wall_per_sim_s"] for r in rs], "o-", label=be)
+        ax[1].plot([r["wall_per_sim_s"] for r in rs], [r["density_err_mean"] for r in rs], "o-", label=be)
+        for r in rs:
+            ax[1].annotate(str(r["particles"]), (r["wall_per_sim_s"], r["density_err_mean"]), fontsize=7)
+    ax[0].set(xscale="log", yscale="log", xlabel="fluid particles", ylabel="wall s per simulated s",
+              title=f"DFSPH {records[0]['scene']}, tolerance 0.01 %")
+    ax[1].set(xscale="log", xlabel="wall s per simulated s", ylabel="mean density error (measured)",
+              title="error vs run time")
+    for a in ax:
+        a.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plot_prediction(records, path):

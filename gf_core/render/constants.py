@@ -5,7 +5,8 @@ ALPHA_MAX = 0.99          # per-splat alpha clamp (3DGS)
 TRANSMITTANCE_MIN = 1e-4  # a pixel stops compositing once its transmittance would drop below this
 FRUSTUM_SLACK = 1.3       # x/z and y/z are clamped to 1.3x the image extent in the EWA Jacobian
 DEFAULT_MIN_ALPHA = 1e-3  # splats with alpha below this at a pixel are skipped there
-TILE_SIZE = 16
+TILE_SIZE = 16            # pixels per tile side, CPU backends
+TILE_SIZE_CUDA = 8        # CUDA: 4x the blocks on a crowded image (BENCHMARKS.md, CUDA backend)
 
 # Real spherical harmonics (as in 3DGS), degree 0..3.
 SH_C0 = 0.28209479177387814

@@ -2,7 +2,7 @@
 ``gf_native``, built on first use with ``torch.utils.cpp_extension`` and cached.
 
 What is built: ``csrc/ext.cpp`` (one entry per op: checks, then CPU/CUDA dispatch),
-``render_cpu.cpp``, ``sph_cpu.cpp`` and, when torch has CUDA and ``nvcc`` is found
+``render_cpu.cpp``, ``sph_cpu.cpp``, ``sim_cpu.cpp`` and, when torch has CUDA and ``nvcc`` is found
 (``CUDA_HOME``, the PyPI wheel ``nvidia-cuda-nvcc``, or PATH), ``render_cuda.cu`` and
 ``sph_cuda.cu`` with ``-DWITH_CUDA``.
 
@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 CSRC = Path(__file__).parent / "csrc"
-CPU_SOURCES = ("ext.cpp", "render_cpu.cpp", "sph_cpu.cpp")
+CPU_SOURCES = ("ext.cpp", "render_cpu.cpp", "sph_cpu.cpp", "sim_cpu.cpp")
 CUDA_SOURCES = ("render_cuda.cu", "sph_cuda.cu")
 HEADERS = ("gaussian_math.h", "ops.h", "sph_math.h")
 CXX_FLAGS = ["-O3", "-fopenmp", "-march=native"]

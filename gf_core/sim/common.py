@@ -17,6 +17,12 @@ from ..neighbors import neighbor_pairs
 from . import kernels
 
 
+def native_available() -> bool:
+    from ..render import native
+
+    return native.available()
+
+
 class SimulationError(GFError):
     """A simulation could not continue (the message says at which step and why)."""
 
@@ -156,14 +162,24 @@ def xsph(v, i, j, r, V, h, c: float, kernel: kernels.Kernel = kernels.CUBIC):
     return v + dv
 
 
-def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, max_iters: int = 50,
-                       tol: float = 1e-4, kernel: kernels.Kernel = kernels.CUBIC):
+VISCOSITY_BOUNDARIES = ("free-slip", "no-slip")
+
+
+def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, boundary: str = "free-slip",
+                       max_iters: int = 50, tol: float = 1e-4, kernel: kernels.Kernel = kernels.CUBIC):
     """Solve (I - nu dt L) v_new = v with conjugate gradients, L the SPH Laplacian of Weiler et al.
-    2018: (L v)_i = 10 sum_j V ((v_i - v_j) . x_ij) / (|x_ij|^2 + 0.01 h^2) grad W_ij
-    (+ the same with wall particles at rest). Unconditionally stable: honey-like viscosity needs
-    no sub-stepping. Returns (v_new, iterations)."""
+    2018: (L v)_i = 10 sum_j V ((v_i - v_j) . x_ij) / (|x_ij|^2 + 0.01 h^2) grad W_ij.
+    ``boundary``: "free-slip" (default, as SPlisHSPlasH's default) leaves the walls out of the
+    viscosity, so a fluid slides along them; "no-slip" adds the same term with the wall particles
+    at rest, which brakes every particle near a wall (the falling sphere's splash with either:
+    BENCHMARKS.md, "Viscosity at the walls"). Unconditionally stable: honey-like
+    viscosity needs no sub-stepping. Returns (v_new, iterations)."""
+    if boundary not in VISCOSITY_BOUNDARIES:
+        raise InputError("viscosity", f"unknown viscosity boundary {boundary!r} ({', '.join(VISCOSITY_BOUNDARIES)})")
     if nu_dt == 0.0 or v.shape[0] == 0:
         return v, 0
+    if boundary == "free-slip":
+        bi, bb = bi[:0], bb[:0]
     d = x[i] - x[j]
     r = d.norm(dim=-1)
     g = kernel.grad(d, r, h)
@@ -211,18 +227,37 @@ class Measure:
     z0: float
     mass: float
     kernel: kernels.Kernel = kernels.CUBIC
+    _wall_grid: list | None = field(default=None, init=False, repr=False)  # the walls' native grid, built once
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        """sum_j W(x_i - x_j) over fluid and wall particles, self included (native on CPU)."""
+        n = x.shape[0]
+        rho = torch.full((n,), self.kernel.zero(self.h), dtype=x.dtype, device=x.device)
+        kind = {"cubic": 0, "wendland": 1}.get(self.kernel.name)
+        if kind is not None and x.device.type == "cpu" and native_available():
+            from ..neighbors import build_grid
+            from ..render import native
+
+            ext = native.load()
+            rho += ext.kernel_sum(x.contiguous(), x.contiguous(), [], self.h, kind, True)
+            if self.wall.numel():
+                if self._wall_grid is None:
+                    self._wall_grid = build_grid(self.wall, self.h)
+                rho += ext.kernel_sum(x.contiguous(), self.wall, self._wall_grid, self.h, kind, False)
+            return rho
+        i, j = neighbor_pairs(x, self.h)
+        W = self.kernel.W
+        rho.index_add_(0, i, W((x[i] - x[j]).norm(dim=-1), self.h))
+        if self.wall.numel():
+            bi, bb = neighbor_pairs(x, self.h, self.wall)
+            rho.index_add_(0, bi, W((x[bi] - self.wall[bb]).norm(dim=-1), self.h))
+        return rho
 
     def __call__(self, x: torch.Tensor, v: torch.Tensor) -> dict:
         n = x.shape[0]
         if n == 0:
             return {"density_err_mean": 0.0, "density_err_max": 0.0, "kinetic": 0.0, "potential": 0.0}
-        i, j = neighbor_pairs(x, self.h)
-        W = self.kernel.W
-        rho = torch.full((n,), self.kernel.zero(self.h), dtype=x.dtype, device=x.device)
-        rho.index_add_(0, i, W((x[i] - x[j]).norm(dim=-1), self.h))
-        if self.wall.numel():
-            bi, bb = neighbor_pairs(x, self.h, self.wall)
-            rho.index_add_(0, bi, W((x[bi] - self.wall[bb]).norm(dim=-1), self.h))
+        rho = self.density(x)
         err = (rho * self.V - 1.0).clamp_min(0.0)  # compression (free-surface deficit is not error)
         kin = 0.5 * self.mass * float((v * v).sum())
         pot = -self.mass * float(((x - x.new_tensor([0, 0, self.z0])) @ self.gravity.to(x)).sum())

@@ -41,9 +41,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..neighbors import neighbor_pairs
+from ..neighbors import build_grid, csr_rows, neighbor_lists, neighbor_pairs
 from . import kernels
-from .common import (Domain, SolverBase, enforce_box, estimate_rest_state, even_step, implicit_viscosity,
+from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
+                     implicit_viscosity,
                      lattice_volume, limit_speed, xsph)
 
 
@@ -65,8 +66,10 @@ class DFSPHParams:
     max_iterations: int = 100
     xsph: float = 0.01             # XSPH smoothing (water)
     viscosity: float = 0.0         # kinematic viscosity nu [m^2/s], solved implicitly
+    viscosity_boundary: str = "free-slip"  # or "no-slip": the walls' friction (common.implicit_viscosity)
     max_speed: float | None = None  # safety net; default from the domain height
     rest_volume: float | None = None  # V = 1 / n0; None: from a lattice of spacing 2 r
+    backend: str = "auto"          # pair sums: "native" (C++, CPU), "torch" (reference), "auto"
 
     def validate(self):
         from ..errors import InputError
@@ -83,10 +86,15 @@ class DFSPHParams:
             raise InputError("dfsph", f"dt_min {self.dt_min} > dt_max {self.dt_max}")
         if not 0 <= self.xsph <= 1:
             raise InputError("dfsph", f"xsph must be in [0, 1], got {self.xsph}")
+        if self.viscosity_boundary not in VISCOSITY_BOUNDARIES:
+            raise InputError("dfsph", f"unknown viscosity_boundary {self.viscosity_boundary!r} "
+                                   f"({', '.join(VISCOSITY_BOUNDARIES)})")
         if not (math.isfinite(self.viscosity) and self.viscosity >= 0):
             raise InputError("dfsph", f"viscosity must be >= 0, got {self.viscosity}")
         if self.rest_volume is not None and not (math.isfinite(self.rest_volume) and self.rest_volume > 0):
             raise InputError("dfsph", f"rest_volume must be a positive number, got {self.rest_volume}")
+        if self.backend not in ("auto", "native", "torch"):
+            raise InputError("dfsph", f"unknown backend {self.backend!r} (auto, native, torch)")
 
 
 class DFSPH(SolverBase):
@@ -103,6 +111,8 @@ class DFSPH(SolverBase):
         self._kappa = self._kappa_v = None
         self._cache = None  # neighbours/densities/alpha of the current positions
         self._wall_static = None
+        self.native = self._pick_backend(device)
+        self._wall_grid = None
         # alpha of a particle inside a full lattice (g_f = 0): 1 / sum_j |V gradW_ij|^2
         m = int(math.ceil(self.h / self.spacing))
         g = torch.arange(-m, m + 1, dtype=torch.float64) * self.spacing
@@ -119,6 +129,18 @@ class DFSPH(SolverBase):
                              **overrides)
         return cls(params, domain, device=device, dtype=dtype)
 
+    def _pick_backend(self, device) -> bool:
+        """Native pair sums (``csrc/sim_cpu.cpp``) for CPU tensors where the extension is built; the
+        torch path (the reference) otherwise."""
+        from ..errors import InputError
+        from ..render import native
+
+        ok = torch.device(device).type == "cpu" and native.available()
+        if self.p.backend == "native" and not ok:
+            raise InputError("dfsph", f"backend 'native' needs CPU tensors and the native extension "
+                                      f"({native.unavailable_reason() or 'device ' + str(device)})")
+        return ok and self.p.backend != "torch"
+
     def reset(self):
         self._kappa = self._kappa_v = None
 
@@ -134,6 +156,8 @@ class DFSPH(SolverBase):
         return self._wall_static
 
     def _neighbourhood(self, x):
+        if self.native:
+            return self._neighbourhood_native(x)
         h, V, K = self.h, self.V, self.kernel
         n, nw = x.shape[0], self.wall.shape[0]
         i, j = neighbor_pairs(x, h)
@@ -167,6 +191,30 @@ class DFSPH(SolverBase):
         return dict(i=i, j=j, r=r, gw=gw, bi=bi, bb=bb, gwb=gwb, rho=rho,
                     rho_all=torch.cat([rho, rho_w]), alpha=alpha, count=count, n=n)
 
+    def _neighbourhood_native(self, x):
+        """The same quantities from the native engine: CSR neighbour lists (the walls' grid built
+        once), per-pair V gradW and W, densities, factors and counts in one pass."""
+        from ..render import native
+
+        n, nw = x.shape[0], self.wall.shape[0]
+        if self._wall_grid is None:
+            self._wall_grid = build_grid(self.wall, self.h)
+        rowptr, col = neighbor_lists(x, self.h)
+        browptr, bcol = neighbor_lists(x, self.h, self.wall, grid=self._wall_grid)
+        wall_rho, wall_count = self._wall_self()
+        t = native.load().dfsph_neighbourhood(x, self.wall, rowptr, col, browptr, bcol, wall_rho.contiguous(),
+                                              wall_count.contiguous(), self.V, self.h,
+                                              WALL_ALPHA_CAP * self._alpha_lattice)
+        return dict(native=t, rowptr=rowptr, col=col, browptr=browptr, bcol=bcol, w=t[0], rho=t[4][:n],
+                    rho_all=t[4], alpha=t[5], count=t[6], n=n)
+
+    def _pairs(self, nb):
+        """(i, j, bi, bb) pair lists of a neighbourhood (the native one keeps CSR lists)."""
+        if "i" not in nb:
+            nb["i"], nb["j"] = csr_rows(nb["rowptr"]), nb["col"]
+            nb["bi"], nb["bb"] = csr_rows(nb["browptr"]), nb["bcol"]
+        return nb["i"], nb["j"], nb["bi"], nb["bb"]
+
     def _div(self, v, nb):
         """Density rates of fluid and wall particles (one vector, fluid first):
         sum_j V (v_i - v_j) . gradW_ij + sum_b V v_i . gradW_ib   and   sum_i V v_i . gradW_ib."""
@@ -187,9 +235,10 @@ class DFSPH(SolverBase):
         dv.index_add_(0, bi, (kappa[bi] + kappa[n + bb])[:, None] * nb["gwb"])
         return -dt * dv
 
-    def _solve(self, v, nb, dt, kappa, residual, scale, tol, min_iters, warm: float):
+    def _solve(self, v, nb, dt, kappa, residual: str, scale, tol, min_iters, warm: float):
         """Jacobi iterations on the pressure-like kappa of fluid and wall particles (Bender &
-        Koschier 2017, Alg. 2/3): kappa_k += max(residual_k(v* + dv(kappa)), 0) alpha_k / scale,
+        Koschier 2017, Alg. 2/3): kappa_k += max(residual_k(v* + dv(kappa)), 0) alpha_k / scale
+        (``residual``: "density" or "divergence", see ``_residuals``),
         warm-started with ``warm`` x the previous step's kappa. The error is the compression summed
         over fluid and wall particles, divided by the number of fluid particles. v is updated in
         place.
@@ -199,11 +248,20 @@ class DFSPH(SolverBase):
         NaN) is therefore taken back and redone with half the relaxation, which stays halved for
         the rest of the solve. Returns (kappa, iterations, error, halvings)."""
         alpha = nb["alpha"]
-        v0 = v.clone()
         if kappa is None or kappa.shape != alpha.shape or warm <= 0:
             kappa = torch.zeros_like(alpha)
         else:
             kappa = torch.where(alpha > 0, warm * kappa, torch.zeros_like(kappa))
+        if "native" in nb:  # the same loop in C++ (dfsph_solve in csrc/sim_cpu.cpp)
+            from ..render import native
+
+            mode = {"density": 0, "divergence": 1}[residual]
+            kappa, info = native.load().dfsph_solve(v, kappa, nb["rowptr"], nb["col"], nb["browptr"], nb["bcol"],
+                                                    nb["native"], mode, dt, scale, tol, min_iters,
+                                                    self.p.max_iterations)
+            return kappa, int(info[0]), float(info[1]), int(info[2])
+        residual = self._residuals(residual, nb, dt)
+        v0 = v.clone()
         err, it, omega, halvings = 0.0, 0, 1.0, 0
         err_prev, kappa_prev, update = math.inf, kappa, None
         for it in range(1, self.p.max_iterations + 1):
@@ -222,21 +280,27 @@ class DFSPH(SolverBase):
             kappa = kappa + omega * update
         return kappa, it, err, halvings
 
+    def _residuals(self, which, nb, dt):
+        """The residual of v for the two solves:
+        density:    rho~_k + dt * div_k(v) - 1 for fluid and wall particles;
+        divergence: dt * div_k(v), 0 for particles with fewer than 20 neighbours (fluid + wall):
+                    their divergence estimate is meaningless."""
+        if which == "density":
+            return lambda vv: nb["rho_all"] + dt * self._div(vv, nb) - 1.0
+        enough = nb["count"] >= 20
+        zero = torch.zeros_like(nb["alpha"])
+        return lambda vv: torch.where(enough, self._div(vv, nb), zero) * dt
+
     def _density_solve(self, v, nb, dt):
         """Constant density: rho~_k + dt * div_k(v) -> 1 for fluid and wall particles."""
-        self._kappa, it, err, halvings = self._solve(
-            v, nb, dt, self._kappa, lambda vv: nb["rho_all"] + dt * self._div(vv, nb) - 1.0, dt * dt,
-            self.p.density_tol, self.p.min_iterations, self.warm)
+        self._kappa, it, err, halvings = self._solve(v, nb, dt, self._kappa, "density", dt * dt,
+                                                     self.p.density_tol, self.p.min_iterations, self.warm)
         return it, err, halvings
 
     def _divergence_solve(self, v, nb, dt):
-        """Divergence free: div_k(v) -> 0 (error measured as div * dt); particles with fewer than
-        20 neighbours (fluid + wall) are skipped: their divergence estimate is meaningless."""
-        enough = nb["count"] >= 20
-        zero = torch.zeros_like(nb["alpha"])
-        self._kappa_v, it, err, halvings = self._solve(
-            v, nb, dt, self._kappa_v, lambda vv: torch.where(enough, self._div(vv, nb), zero) * dt,
-            dt * dt, self.p.divergence_tol, 1, self.warm)
+        """Divergence free: div_k(v) -> 0 (error measured as div * dt)."""
+        self._kappa_v, it, err, halvings = self._solve(v, nb, dt, self._kappa_v, "divergence", dt * dt,
+                                                       self.p.divergence_tol, 1, self.warm)
         return it, err, halvings
 
     # ---- one step -------------------------------------------------------------------------------
@@ -250,12 +314,18 @@ class DFSPH(SolverBase):
         dt = even_step(min(max(dt, p.dt_min), p.dt_max), dt_max)
         # 2. non-pressure forces
         v.add_(dt * self.g)
-        if p.xsph:
+        if p.xsph and "native" in nb:
+            from ..render import native
+
+            v.copy_(native.load().csr_xsph(v, nb["rowptr"], nb["col"], nb["w"], self.V * p.xsph))
+        elif p.xsph:
             v.copy_(xsph(v, nb["i"], nb["j"], nb["r"], self.V, self.h, p.xsph, self.kernel))
         visc_it = 0
         if p.viscosity:
-            vv, visc_it = implicit_viscosity(v, x, nb["i"], nb["j"], nb["bi"], nb["bb"], self.wall,
-                                             self.V, self.h, p.viscosity * dt, kernel=self.kernel)
+            i, j, bi, bb = self._pairs(nb)
+            vv, visc_it = implicit_viscosity(v, x, i, j, bi, bb, self.wall,
+                                             self.V, self.h, p.viscosity * dt, kernel=self.kernel,
+                                             boundary=p.viscosity_boundary)
             v.copy_(vv)
         # 3. constant density
         it_rho, err_rho, halved = self._density_solve(v, nb, dt)

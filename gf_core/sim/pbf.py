@@ -31,7 +31,8 @@ import torch
 from ..errors import InputError
 from ..neighbors import neighbor_pairs
 from . import kernels
-from .common import (Domain, SolverBase, enforce_box, estimate_rest_state, even_step, implicit_viscosity,
+from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
+                     implicit_viscosity,
                      lattice_volume, limit_speed, xsph)
 
 
@@ -51,6 +52,7 @@ class PBFParams:
     xsph: float = 0.01
     vorticity: float = 0.0         # vorticity confinement strength (0: off)
     viscosity: float = 0.0         # kinematic viscosity nu [m^2/s], solved implicitly
+    viscosity_boundary: str = "free-slip"  # or "no-slip": the walls' friction (common.implicit_viscosity)
     rest_volume: float | None = None  # V = 1 / n0; None: from a lattice of spacing 2 r
     max_speed: float | None = None
 
@@ -66,6 +68,9 @@ class PBFParams:
         for k in ("vorticity", "viscosity", "scorr_k"):
             if not (math.isfinite(getattr(self, k)) and getattr(self, k) >= 0):
                 raise InputError("pbf", f"{k} must be >= 0, got {getattr(self, k)}")
+        if self.viscosity_boundary not in VISCOSITY_BOUNDARIES:
+            raise InputError("pbf", f"unknown viscosity_boundary {self.viscosity_boundary!r} "
+                                    f"({', '.join(VISCOSITY_BOUNDARIES)})")
 
 
 class PBF(SolverBase):
@@ -145,7 +150,8 @@ class PBF(SolverBase):
             v.copy_(xsph(v, i, j, r, self.V, self.h, p.xsph))
         visc_it = 0
         if p.viscosity:
-            vv, visc_it = implicit_viscosity(v, x, i, j, bi, bb, self.wall, self.V, self.h, p.viscosity * dt)
+            vv, visc_it = implicit_viscosity(v, x, i, j, bi, bb, self.wall, self.V, self.h, p.viscosity * dt,
+                                             boundary=p.viscosity_boundary)
             v.copy_(vv)
         limited += limit_speed(v, self.vmax)
         err = float(C.mean()) if C is not None and C.numel() else 0.0

@@ -124,6 +124,88 @@ std::vector<Tensor> sph_density_backward(Tensor x, Tensor idx, double h, Tensor 
   GF_DISPATCH(sph_density_backward, x, x, idx, h, gD)
 }
 
+// ---- the simulators' SPH engine: CPU tensors only ------------------------------------------------
+void check_cpu(const Tensor& t, const char* name, const char* op) {
+  TORCH_CHECK(t.device().is_cpu(), op, ": ", name, " is on ", t.device().str(),
+              "; the native SPH engine runs on CPU tensors (CUDA tensors use the solvers' torch path)");
+}
+
+void check_points(const Tensor& t, const char* name, const char* op) {
+  check_cpu(t, name, op);
+  TORCH_CHECK(t.dim() == 2 && t.size(1) == 3, op, ": ", name, " must be (N, 3), got ", t.sizes());
+}
+
+void check_csr(const Tensor& rowptr, const Tensor& col, int64_t rows, const char* name, const char* op) {
+  TORCH_CHECK(rowptr.scalar_type() == torch::kInt64 && col.scalar_type() == torch::kInt64, op, ": ", name,
+              " must be int64");
+  TORCH_CHECK(rowptr.is_contiguous() && col.is_contiguous() && rowptr.dim() == 1 && col.dim() == 1, op, ": ", name,
+              " must be contiguous 1-D tensors");
+  TORCH_CHECK(rowptr.size(0) == rows + 1, op, ": ", name, " has ", rowptr.size(0) - 1, " rows, expected ", rows);
+}
+
+std::vector<Tensor> grid_build(Tensor y, double cell) {
+  check_same({{"y", &y}}, "grid_build");
+  check_points(y, "y", "grid_build");
+  TORCH_CHECK(cell > 0 && std::isfinite(cell), "grid_build: cell size must be positive and finite, got ", cell);
+  return gf::grid_build_cpu(y, cell);
+}
+
+std::vector<Tensor> radius_pairs(Tensor x, Tensor y, std::vector<Tensor> grid, double radius, bool exclude_self) {
+  check_same({{"x", &x}, {"y", &y}}, "radius_pairs");
+  check_points(x, "x", "radius_pairs");
+  check_points(y, "y", "radius_pairs");
+  TORCH_CHECK(radius > 0 && std::isfinite(radius), "radius_pairs: radius must be positive and finite, got ", radius);
+  return gf::radius_pairs_cpu(x, y, grid, radius, exclude_self);
+}
+
+std::vector<Tensor> dfsph_neighbourhood(Tensor x, Tensor wall, Tensor rowptr, Tensor col, Tensor browptr,
+                                        Tensor bcol, Tensor wall_rho, Tensor wall_count, double V, double h,
+                                        double wall_alpha_cap) {
+  const char* op = "dfsph_neighbourhood";
+  check_same({{"x", &x}, {"wall", &wall}, {"wall_rho", &wall_rho}}, op);
+  check_points(x, "x", op);
+  check_points(wall, "wall", op);
+  check_csr(rowptr, col, x.size(0), "the fluid neighbour lists", op);
+  check_csr(browptr, bcol, x.size(0), "the wall neighbour lists", op);
+  TORCH_CHECK(wall_rho.numel() == wall.size(0) && wall_count.numel() == wall.size(0) &&
+                  wall_count.scalar_type() == torch::kInt64 && wall_rho.is_contiguous() && wall_count.is_contiguous(),
+              op, ": wall_rho and wall_count (int64) need one value per wall particle");
+  return gf::dfsph_neighbourhood_cpu(x, wall, rowptr, col, browptr, bcol, wall_rho, wall_count, V, h, wall_alpha_cap);
+}
+
+std::vector<Tensor> dfsph_solve(Tensor v, Tensor kappa0, Tensor rowptr, Tensor col, Tensor browptr, Tensor bcol,
+                                std::vector<Tensor> nb, int64_t mode, double dt, double scale, double tol,
+                                int64_t min_iters, int64_t max_iters) {
+  const char* op = "dfsph_solve";
+  TORCH_CHECK(nb.size() == 10, op, ": nb must be what dfsph_neighbourhood returned");
+  check_same({{"v", &v}, {"gw", &nb[1]}, {"gwb", &nb[3]}, {"rho_all", &nb[4]}, {"alpha", &nb[5]}}, op);
+  check_points(v, "v", op);
+  check_csr(rowptr, col, v.size(0), "the fluid neighbour lists", op);
+  check_csr(browptr, bcol, v.size(0), "the wall neighbour lists", op);
+  TORCH_CHECK(kappa0.numel() == nb[5].numel(), op, ": kappa has ", kappa0.numel(), " values for ", nb[5].numel(),
+              " particles");
+  TORCH_CHECK(mode == 0 || mode == 1, op, ": mode must be 0 (density) or 1 (divergence)");
+  TORCH_CHECK(dt > 0 && scale > 0 && max_iters >= 1, op, ": dt, scale and max_iters must be positive");
+  return gf::dfsph_solve_cpu(v, kappa0, rowptr, col, browptr, bcol, nb, mode, dt, scale, tol, min_iters, max_iters);
+}
+
+Tensor kernel_sum(Tensor x, Tensor y, std::vector<Tensor> grid, double h, int64_t kernel, bool exclude_self) {
+  check_same({{"x", &x}, {"y", &y}}, "kernel_sum");
+  check_points(x, "x", "kernel_sum");
+  check_points(y, "y", "kernel_sum");
+  TORCH_CHECK(h > 0 && std::isfinite(h), "kernel_sum: h must be positive and finite, got ", h);
+  TORCH_CHECK(kernel >= 0 && kernel <= 2, "kernel_sum: kernel must be 0 (cubic), 1 (Wendland) or 2 (poly6)");
+  return gf::kernel_sum_cpu(x, y, grid, h, kernel, exclude_self);
+}
+
+Tensor csr_xsph(Tensor v, Tensor rowptr, Tensor col, Tensor w, double cV) {
+  check_same({{"v", &v}, {"w", &w}}, "csr_xsph");
+  check_points(v, "v", "csr_xsph");
+  check_csr(rowptr, col, v.size(0), "the neighbour lists", "csr_xsph");
+  TORCH_CHECK(w.numel() == col.numel() && w.is_contiguous(), "csr_xsph: w needs one value per pair");
+  return gf::csr_xsph_cpu(v, rowptr, col, w, cV);
+}
+
 std::vector<double> constants() {
   return {gf::kLowPass, gf::kAlphaMax, gf::kTransmittanceMin, gf::kFrustumSlack, gf::kShC0, gf::kShC1,
           gf::kShC2_0, gf::kShC2_1, gf::kShC2_2, gf::kShC2_3, gf::kShC2_4, gf::kShC3_0, gf::kShC3_1,
@@ -149,6 +231,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("knn", &knn, "K nearest neighbours within a radius on a hashed grid: (idx, dist)");
   m.def("sph_density_forward", &sph_density_forward, "SPH density (Poly6, unit mass) over neighbour lists");
   m.def("sph_density_backward", &sph_density_backward, "gradient of the SPH density with respect to positions");
+  m.def("grid_build", &grid_build, "hashed uniform grid over points (lo, cell, starts, order, cells), reusable");
+  m.def("radius_pairs", &radius_pairs, "fixed-radius neighbours as CSR (rowptr, col), columns ascending per row");
+  m.def("dfsph_neighbourhood", &dfsph_neighbourhood, "DFSPH pair kernels, densities and factors over CSR lists");
+  m.def("dfsph_solve", &dfsph_solve, "DFSPH Jacobi solve (density or divergence) over CSR lists");
+  m.def("kernel_sum", &kernel_sum, "sum_j W(|x_i - y_j|, h) over neighbours within h (cubic, Wendland or poly6)");
+  m.def("csr_xsph", &csr_xsph, "XSPH velocity smoothing over CSR lists");
   m.def("constants", &constants, "the renderer constants compiled into the extension");
   m.def("has_cuda", &has_cuda, "whether this build includes the CUDA ops");
 }

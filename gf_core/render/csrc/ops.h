@@ -56,6 +56,22 @@ inline Cam make_cam(const torch::Tensor& viewmat, const torch::Tensor& intr, int
                                                            torch::Tensor gD);
 
 GF_RENDER_OPS(cpu)
+
+// The simulators' SPH engine (sim_cpu.cpp), CPU only: CUDA tensors use the solvers' torch path.
+std::vector<torch::Tensor> grid_build_cpu(torch::Tensor y, double cell);
+std::vector<torch::Tensor> radius_pairs_cpu(torch::Tensor x, torch::Tensor y, std::vector<torch::Tensor> grid,
+                                            double radius, bool exclude_self);
+std::vector<torch::Tensor> dfsph_neighbourhood_cpu(torch::Tensor x, torch::Tensor wall, torch::Tensor rowptr,
+                                                   torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol,
+                                                   torch::Tensor wall_rho, torch::Tensor wall_count, double V,
+                                                   double h, double wall_alpha_cap);
+std::vector<torch::Tensor> dfsph_solve_cpu(torch::Tensor v, torch::Tensor kappa0, torch::Tensor rowptr,
+                                           torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol,
+                                           std::vector<torch::Tensor> nb, int64_t mode, double dt, double scale,
+                                           double tol, int64_t min_iters, int64_t max_iters);
+torch::Tensor kernel_sum_cpu(torch::Tensor x, torch::Tensor y, std::vector<torch::Tensor> grid, double h,
+                             int64_t kernel, bool exclude_self);
+torch::Tensor csr_xsph_cpu(torch::Tensor v, torch::Tensor rowptr, torch::Tensor col, torch::Tensor w, double cV);
 #ifdef WITH_CUDA
 GF_RENDER_OPS(cuda)
 #endif

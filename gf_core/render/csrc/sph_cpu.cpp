@@ -34,9 +34,11 @@ void knn_impl(const S* x, int64_t N, const S* y, int64_t M, int k, double radius
   }
   g.inv = 1.0 / radius;
   g.table = table_size(M);
-  // counting sort of y by cell hash
+  // counting sort of y by cell hash; the sorted cells and positions are copied out so that a
+  // bucket's points lie contiguously in memory
   std::vector<int64_t> hash(M), start(g.table + 1, 0), order(M);
-  std::vector<int64_t> cells(3 * M);
+  std::vector<int64_t> cells(3 * M), scells(3 * M);
+  std::vector<S> spos(3 * M);
   for (int64_t j = 0; j < M; ++j) {
     int64_t c[3];
     cell_of(g, y[3 * j], y[3 * j + 1], y[3 * j + 2], c);
@@ -47,28 +49,41 @@ void knn_impl(const S* x, int64_t N, const S* y, int64_t M, int k, double radius
   for (int64_t b = 0; b < g.table; ++b) start[b + 1] += start[b];
   std::vector<int64_t> fill(start.begin(), start.end() - 1);
   for (int64_t j = 0; j < M; ++j) order[fill[hash[j]]++] = j;  // index order kept inside a bucket
+  for (int64_t q = 0; q < M; ++q)
+    for (int a = 0; a < 3; ++a) {
+      scells[3 * q + a] = cells[3 * order[q] + a];
+      spos[3 * q + a] = y[3 * order[q] + a];
+    }
   const S r2 = (S)(radius * radius);
+  // x is y when exclude_self: its queries then run in grid order (neighbouring queries share buckets)
+  const bool same = exclude_self;
 #pragma omp parallel
   {
     std::vector<S> dk(k);
     std::vector<int64_t> jk(k);
 #pragma omp for schedule(dynamic, 256)
-    for (int64_t i = 0; i < N; ++i) {
+    for (int64_t qk = 0; qk < N; ++qk) {
+      const int64_t i = same ? order[qk] : qk;
+      const S xi[3] = {x[3 * i], x[3 * i + 1], x[3 * i + 2]};
       int64_t c[3];
-      cell_of(g, x[3 * i], x[3 * i + 1], x[3 * i + 2], c);
+      if (same) {
+        c[0] = scells[3 * qk]; c[1] = scells[3 * qk + 1]; c[2] = scells[3 * qk + 2];
+      } else {
+        cell_of(g, xi[0], xi[1], xi[2], c);
+      }
       int n = 0, far = -1;
       for (int dx = -1; dx <= 1; ++dx)
         for (int dy = -1; dy <= 1; ++dy)
           for (int dz = -1; dz <= 1; ++dz) {
-            int64_t cx = c[0] + dx, cy = c[1] + dy, cz = c[2] + dz;
-            int64_t b = cell_hash(g, cx, cy, cz);
+            const int64_t cx = c[0] + dx, cy = c[1] + dy, cz = c[2] + dz;
+            const int64_t b = cell_hash(g, cx, cy, cz);
             for (int64_t q = start[b]; q < start[b + 1]; ++q) {
-              int64_t j = order[q];
-              if (cells[3 * j] != cx || cells[3 * j + 1] != cy || cells[3 * j + 2] != cz) continue;  // hash collision
-              if (exclude_self && j == i) continue;
-              S ex = x[3 * i] - y[3 * j], ey = x[3 * i + 1] - y[3 * j + 1], ez = x[3 * i + 2] - y[3 * j + 2];
-              S d2 = ex * ex + ey * ey + ez * ez;
+              if (scells[3 * q] != cx || scells[3 * q + 1] != cy || scells[3 * q + 2] != cz) continue;  // hash collision
+              const S ex = xi[0] - spos[3 * q], ey = xi[1] - spos[3 * q + 1], ez = xi[2] - spos[3 * q + 2];
+              const S d2 = ex * ex + ey * ey + ez * ez;
               if (!(d2 < r2)) continue;
+              const int64_t j = order[q];
+              if (same && j == i) continue;
               n = topk_push<S>(d2, j, dk.data(), jk.data(), n, k, far);
             }
           }
