@@ -30,7 +30,7 @@ def register(sub):
                    help="whether the viscosity also acts against the walls (no-slip) or not (free-slip); default: "
                         "the material's (water free-slip, honey no-slip)")
     p.add_argument("--backend", choices=("auto", "native", "torch"), default="auto",
-                   help="DFSPH pair sums: native C++ (CPU), the torch reference, or auto (native where built)")
+                   help="the solver's pair sums: native C++ (CPU), the torch reference, or auto (native where built)")
     p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=run)
@@ -67,8 +67,6 @@ def check_options(args) -> None:
         raise InputError("--particles", f"must be >= 1, got {args.particles}")
     if args.viscosity is not None and not (args.viscosity >= 0 and args.viscosity != float("inf")):
         raise InputError("--viscosity", f"must be >= 0 m^2/s, got {args.viscosity}")
-    if args.backend != "auto" and args.solver != "dfsph":
-        raise InputError("--backend", f"chooses DFSPH's pair sums; the {args.solver} solver has no such option")
     from .cmd_reconstruct import check_device
 
     check_device(args.device)

@@ -23,6 +23,19 @@ def native_available() -> bool:
     return native.available()
 
 
+def pick_backend(solver: str, backend: str, device) -> bool:
+    """Whether a solver runs its pair sums natively (``csrc/sim_cpu.cpp``): CPU tensors with the
+    native extension built, unless ``backend`` is "torch" (the reference path, also the one for
+    CUDA tensors); "native" where that is impossible is an error."""
+    ok = torch.device(device).type == "cpu" and native_available()
+    if backend == "native" and not ok:
+        from ..render import native
+
+        raise InputError(solver, f"backend 'native' needs CPU tensors and the native extension "
+                                 f"({native.unavailable_reason() or 'device ' + str(device)})")
+    return ok and backend != "torch"
+
+
 class SimulationError(GFError):
     """A simulation could not continue (the message says at which step and why)."""
 

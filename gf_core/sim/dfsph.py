@@ -44,8 +44,7 @@ import torch
 from ..neighbors import build_grid, csr_rows, neighbor_lists, neighbor_pairs
 from . import kernels
 from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
-                     implicit_viscosity,
-                     lattice_volume, limit_speed, xsph)
+                     implicit_viscosity, lattice_volume, limit_speed, pick_backend, xsph)
 
 
 WALL_ALPHA_CAP = 4.0  # wall factor alpha_b <= 4 x a full-lattice fluid particle's (see _neighbourhood)
@@ -111,7 +110,7 @@ class DFSPH(SolverBase):
         self._kappa = self._kappa_v = None
         self._cache = None  # neighbours/densities/alpha of the current positions
         self._wall_static = None
-        self.native = self._pick_backend(device)
+        self.native = pick_backend("dfsph", params.backend, device)
         self._wall_grid = None
         # alpha of a particle inside a full lattice (g_f = 0): 1 / sum_j |V gradW_ij|^2
         m = int(math.ceil(self.h / self.spacing))
@@ -128,18 +127,6 @@ class DFSPH(SolverBase):
         params = DFSPHParams(particle_radius=spacing / 2.0, rest_density=rest_density, rest_volume=V,
                              **overrides)
         return cls(params, domain, device=device, dtype=dtype)
-
-    def _pick_backend(self, device) -> bool:
-        """Native pair sums (``csrc/sim_cpu.cpp``) for CPU tensors where the extension is built; the
-        torch path (the reference) otherwise."""
-        from ..errors import InputError
-        from ..render import native
-
-        ok = torch.device(device).type == "cpu" and native.available()
-        if self.p.backend == "native" and not ok:
-            raise InputError("dfsph", f"backend 'native' needs CPU tensors and the native extension "
-                                      f"({native.unavailable_reason() or 'device ' + str(device)})")
-        return ok and self.p.backend != "torch"
 
     def reset(self):
         self._kappa = self._kappa_v = None

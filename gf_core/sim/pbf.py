@@ -29,11 +29,10 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..neighbors import neighbor_pairs
+from ..neighbors import build_grid, csr_rows, neighbor_lists, neighbor_pairs
 from . import kernels
 from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
-                     implicit_viscosity,
-                     lattice_volume, limit_speed, xsph)
+                     implicit_viscosity, lattice_volume, limit_speed, pick_backend, xsph)
 
 
 @dataclass
@@ -53,6 +52,7 @@ class PBFParams:
     vorticity: float = 0.0         # vorticity confinement strength (0: off)
     viscosity: float = 0.0         # kinematic viscosity nu [m^2/s], solved implicitly
     viscosity_boundary: str = "free-slip"  # or "no-slip": the walls' friction (common.implicit_viscosity)
+    backend: str = "auto"          # constraint iterations: "native" (C++, CPU), "torch" (reference), "auto"
     rest_volume: float | None = None  # V = 1 / n0; None: from a lattice of spacing 2 r
     max_speed: float | None = None
 
@@ -68,6 +68,8 @@ class PBFParams:
         for k in ("vorticity", "viscosity", "scorr_k"):
             if not (math.isfinite(getattr(self, k)) and getattr(self, k) >= 0):
                 raise InputError("pbf", f"{k} must be >= 0, got {getattr(self, k)}")
+        if self.backend not in ("auto", "native", "torch"):
+            raise InputError("pbf", f"unknown backend {self.backend!r} (auto, native, torch)")
         if self.viscosity_boundary not in VISCOSITY_BOUNDARIES:
             raise InputError("pbf", f"unknown viscosity_boundary {self.viscosity_boundary!r} "
                                     f"({', '.join(VISCOSITY_BOUNDARIES)})")
@@ -91,6 +93,8 @@ class PBF(SolverBase):
         self.grad2_lattice = float((gl * gl).sum())
         self.eps = params.relaxation * self.grad2_lattice
         self.w_dq = float(kernels.poly6(torch.tensor(params.scorr_dq * self.h), self.h))
+        self.native = pick_backend("pbf", params.backend, device)
+        self._wall_grid = None
 
     @classmethod
     def from_positions(cls, positions, domain: Domain, *, rest_density: float = 1000.0, device="cpu",
@@ -124,24 +128,8 @@ class PBF(SolverBase):
         limited = limit_speed(v, self.vmax)
         x.add_(dt * v)
         enforce_box(x, v, self.domain, 0.1 * self.spacing)
-        i, j = neighbor_pairs(x, self.h)
-        bi, bb = neighbor_pairs(x, self.h, self.wall) if self.wall.numel() else (i[:0], j[:0])
-        C = None
-        for _ in range(int(p.iterations)):
-            r, rho, gw, gwb = self._density_terms(x, i, j, bi, bb)
-            C = (rho - 1.0).clamp_min(0.0)
-            gsum = torch.zeros_like(x).index_add_(0, i, gw).index_add_(0, bi, gwb)
-            s2 = torch.zeros_like(rho).index_add_(0, i, (gw * gw).sum(-1))
-            lam = -C / ((gsum * gsum).sum(-1) + s2 + self.eps)
-            # s_corr is dimensionless in the paper; here it acts as the lambda of a constraint
-            # violated by k (W/W(dq))^n on a lattice particle, so it scales with the spacing
-            scorr = (-p.scorr_k * (kernels.poly6(r, self.h) / self.w_dq) ** p.scorr_n / self.grad2_lattice
-                     if p.scorr_k else 0.0)
-            dx = torch.zeros_like(x)
-            dx.index_add_(0, i, (lam[i] + lam[j] + scorr)[:, None] * gw)
-            dx.index_add_(0, bi, lam[bi][:, None] * gwb)
-            x.add_(dx)
-            moved = enforce_box(x, v, self.domain, 0.1 * self.spacing)
+        constraints = self._constraints_native if self.native else self._constraints
+        C, moved, (i, j, bi, bb) = constraints(x, v)
         v.copy_((x - x0) / dt)
         if p.vorticity:
             self._vorticity(x, v, i, j, dt)
@@ -157,6 +145,48 @@ class PBF(SolverBase):
         err = float(C.mean()) if C is not None and C.numel() else 0.0
         return {"dt": dt, "iterations": int(p.iterations), "density_residual": err,
                 "viscosity_iterations": visc_it, "clamped_to_box": moved, "speed_limited": limited}
+
+    def _constraints(self, x, v):
+        """Step 3 on the torch path (the reference): pair lists of x*, then ``iterations`` rounds of
+        lambda and dx as tensor ops. Returns (C, particles clamped, pair lists)."""
+        p = self.p
+        i, j = neighbor_pairs(x, self.h)
+        bi, bb = neighbor_pairs(x, self.h, self.wall) if self.wall.numel() else (i[:0], j[:0])
+        C, moved = None, 0
+        for _ in range(int(p.iterations)):
+            r, rho, gw, gwb = self._density_terms(x, i, j, bi, bb)
+            C = (rho - 1.0).clamp_min(0.0)
+            gsum = torch.zeros_like(x).index_add_(0, i, gw).index_add_(0, bi, gwb)
+            s2 = torch.zeros_like(rho).index_add_(0, i, (gw * gw).sum(-1))
+            lam = -C / ((gsum * gsum).sum(-1) + s2 + self.eps)
+            # s_corr is dimensionless in the paper; here it acts as the lambda of a constraint
+            # violated by k (W/W(dq))^n on a lattice particle, so it scales with the spacing
+            scorr = (-p.scorr_k * (kernels.poly6(r, self.h) / self.w_dq) ** p.scorr_n / self.grad2_lattice
+                     if p.scorr_k else 0.0)
+            dx = torch.zeros_like(x)
+            dx.index_add_(0, i, (lam[i] + lam[j] + scorr)[:, None] * gw)
+            dx.index_add_(0, bi, lam[bi][:, None] * gwb)
+            x.add_(dx)
+            moved = enforce_box(x, v, self.domain, 0.1 * self.spacing)
+        return C, moved, (i, j, bi, bb)
+
+    def _constraints_native(self, x, v):
+        """The same iterations, each one native call over CSR lists (``csrc/sim_cpu.cpp``; the
+        walls' grid built once)."""
+        from ..render import native
+
+        p, ext = self.p, native.load()
+        if self._wall_grid is None:
+            self._wall_grid = build_grid(self.wall, self.h)
+        rowptr, col = neighbor_lists(x, self.h)
+        browptr, bcol = neighbor_lists(x, self.h, self.wall, grid=self._wall_grid)
+        C, moved = None, 0
+        for _ in range(int(p.iterations)):
+            dx, C = ext.pbf_iteration(x, self.wall, rowptr, col, browptr, bcol, self.V, self.h, self.eps,
+                                      float(p.scorr_k), float(p.scorr_n), self.w_dq, self.grad2_lattice)
+            x.add_(dx)
+            moved = enforce_box(x, v, self.domain, 0.1 * self.spacing)
+        return C, moved, (csr_rows(rowptr), col, csr_rows(browptr), bcol)
 
     def _vorticity(self, x, v, i, j, dt):
         """Vorticity confinement (Fedkiw et al. 2001 as used by PBF): f = eps (N x omega)."""

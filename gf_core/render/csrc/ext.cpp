@@ -189,6 +189,20 @@ std::vector<Tensor> dfsph_solve(Tensor v, Tensor kappa0, Tensor rowptr, Tensor c
   return gf::dfsph_solve_cpu(v, kappa0, rowptr, col, browptr, bcol, nb, mode, dt, scale, tol, min_iters, max_iters);
 }
 
+std::vector<Tensor> pbf_iteration(Tensor x, Tensor wall, Tensor rowptr, Tensor col, Tensor browptr, Tensor bcol,
+                                  double V, double h, double eps, double scorr_k, double scorr_n, double w_dq,
+                                  double grad2_lattice) {
+  const char* op = "pbf_iteration";
+  check_same({{"x", &x}, {"wall", &wall}}, op);
+  check_points(x, "x", op);
+  check_points(wall, "wall", op);
+  check_csr(rowptr, col, x.size(0), "the fluid neighbour lists", op);
+  check_csr(browptr, bcol, x.size(0), "the wall neighbour lists", op);
+  TORCH_CHECK(h > 0 && V > 0 && eps >= 0 && w_dq > 0 && grad2_lattice > 0, op, ": h, V, w_dq and grad2_lattice must be "
+              "positive and eps >= 0");
+  return gf::pbf_iteration_cpu(x, wall, rowptr, col, browptr, bcol, V, h, eps, scorr_k, scorr_n, w_dq, grad2_lattice);
+}
+
 Tensor kernel_sum(Tensor x, Tensor y, std::vector<Tensor> grid, double h, int64_t kernel, bool exclude_self) {
   check_same({{"x", &x}, {"y", &y}}, "kernel_sum");
   check_points(x, "x", "kernel_sum");
@@ -235,6 +249,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("radius_pairs", &radius_pairs, "fixed-radius neighbours as CSR (rowptr, col), columns ascending per row");
   m.def("dfsph_neighbourhood", &dfsph_neighbourhood, "DFSPH pair kernels, densities and factors over CSR lists");
   m.def("dfsph_solve", &dfsph_solve, "DFSPH Jacobi solve (density or divergence) over CSR lists");
+  m.def("pbf_iteration", &pbf_iteration, "one PBF constraint iteration over CSR lists: (dx, C)");
   m.def("kernel_sum", &kernel_sum, "sum_j W(|x_i - y_j|, h) over neighbours within h (cubic, Wendland or poly6)");
   m.def("csr_xsph", &csr_xsph, "XSPH velocity smoothing over CSR lists");
   m.def("constants", &constants, "the renderer constants compiled into the extension");

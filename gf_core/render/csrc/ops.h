@@ -69,6 +69,10 @@ std::vector<torch::Tensor> dfsph_solve_cpu(torch::Tensor v, torch::Tensor kappa0
                                            torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol,
                                            std::vector<torch::Tensor> nb, int64_t mode, double dt, double scale,
                                            double tol, int64_t min_iters, int64_t max_iters);
+std::vector<torch::Tensor> pbf_iteration_cpu(torch::Tensor x, torch::Tensor wall, torch::Tensor rowptr,
+                                             torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol, double V,
+                                             double h, double eps, double scorr_k, double scorr_n, double w_dq,
+                                             double grad2_lattice);
 torch::Tensor kernel_sum_cpu(torch::Tensor x, torch::Tensor y, std::vector<torch::Tensor> grid, double h,
                              int64_t kernel, bool exclude_self);
 torch::Tensor csr_xsph_cpu(torch::Tensor v, torch::Tensor rowptr, torch::Tensor col, torch::Tensor w, double cV);

@@ -612,6 +612,105 @@ std::vector<torch::Tensor> dfsph_solve_cpu(torch::Tensor v, torch::Tensor kappa0
   return {kappa_t.to(v.scalar_type()), info};
 }
 
+namespace {
+
+// PBF kernels (Mueller et al. 2003; pbf.py): poly6 for densities, the spiky gradient for constraint gradients
+struct PbfKernels {
+  double h, h2, c6, cs;
+  explicit PbfKernels(double h_)
+      : h(h_), h2(h_ * h_), c6(315.0 / (64.0 * M_PI * std::pow(h_, 9))), cs(-45.0 / (M_PI * std::pow(h_, 6))) {}
+  double poly6(double r2) const {
+    const double q = h2 - r2;
+    return q > 0 ? c6 * q * q * q : 0.0;
+  }
+  double spiky_scale(double r) const {  // grad W = d * spiky_scale(|d|)
+    if (!(r > 1e-9 * h) || r >= h) return 0.0;
+    return cs * (h - r) * (h - r) / r;
+  }
+};
+
+template <typename S>
+void pbf_iteration_impl(const S* px, const S* pw, const int64_t* rp, const int64_t* cj, const int64_t* brp,
+                        const int64_t* bc, int64_t n, double V, double h, double eps, double scorr_k,
+                        double scorr_n, double w_dq, double grad2_lattice, S* dx, S* C, double* lam) {
+  const PbfKernels K(h);
+  const double W0 = K.poly6(0.0);
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    double rho = W0, g[3] = {0, 0, 0}, s2 = 0;
+    for (int64_t p = rp[i]; p < rp[i + 1]; ++p) {
+      const int64_t j = cj[p];
+      const double d[3] = {(double)px[3 * i] - px[3 * j], (double)px[3 * i + 1] - px[3 * j + 1],
+                           (double)px[3 * i + 2] - px[3 * j + 2]};
+      const double r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+      rho += K.poly6(r2);
+      const double f = V * K.spiky_scale(std::sqrt(r2));
+      for (int a = 0; a < 3; ++a) g[a] += f * d[a];
+      s2 += f * f * r2;
+    }
+    for (int64_t p = brp[i]; p < brp[i + 1]; ++p) {
+      const int64_t b = bc[p];
+      const double d[3] = {(double)px[3 * i] - pw[3 * b], (double)px[3 * i + 1] - pw[3 * b + 1],
+                           (double)px[3 * i + 2] - pw[3 * b + 2]};
+      const double r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+      rho += K.poly6(r2);
+      const double f = V * K.spiky_scale(std::sqrt(r2));
+      for (int a = 0; a < 3; ++a) g[a] += f * d[a];
+    }
+    const double c = std::max(V * rho - 1.0, 0.0);
+    C[i] = (S)c;
+    lam[i] = -c / (g[0] * g[0] + g[1] * g[1] + g[2] * g[2] + s2 + eps);
+  }
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    double acc[3] = {0, 0, 0};
+    for (int64_t p = rp[i]; p < rp[i + 1]; ++p) {
+      const int64_t j = cj[p];
+      const double d[3] = {(double)px[3 * i] - px[3 * j], (double)px[3 * i + 1] - px[3 * j + 1],
+                           (double)px[3 * i + 2] - px[3 * j + 2]};
+      const double r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+      const double f = V * K.spiky_scale(std::sqrt(r2));
+      double k = lam[i] + lam[j];
+      if (scorr_k != 0.0) k += -scorr_k * std::pow(K.poly6(r2) / w_dq, scorr_n) / grad2_lattice;
+      for (int a = 0; a < 3; ++a) acc[a] += k * f * d[a];
+    }
+    for (int64_t p = brp[i]; p < brp[i + 1]; ++p) {
+      const int64_t b = bc[p];
+      const double d[3] = {(double)px[3 * i] - pw[3 * b], (double)px[3 * i + 1] - pw[3 * b + 1],
+                           (double)px[3 * i + 2] - pw[3 * b + 2]};
+      const double r = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+      const double f = V * K.spiky_scale(r);
+      for (int a = 0; a < 3; ++a) acc[a] += lam[i] * f * d[a];
+    }
+    for (int a = 0; a < 3; ++a) dx[3 * i + a] = (S)acc[a];
+  }
+}
+
+}  // namespace
+
+// One PBF constraint iteration (pbf.py step 3; Macklin & Mueller 2013, Alg. 1) over CSR lists:
+//   C_i = max(rho~_i - 1, 0), rho~_i = V (W(0) + sum_j W_ij + sum_b W_ib)                       (poly6)
+//   lambda_i = -C_i / (|sum_j V gradW_ij + sum_b V gradW_ib|^2 + sum_j |V gradW_ij|^2 + eps)      (spiky)
+//   dx_i = sum_j V (lambda_i + lambda_j + s_corr_ij) gradW_ij + sum_b V lambda_i gradW_ib,
+//   s_corr_ij = -k (W_ij / W(dq h))^n / G.     Returns {dx (n, 3), C (n)}.
+std::vector<torch::Tensor> pbf_iteration_cpu(torch::Tensor x, torch::Tensor wall, torch::Tensor rowptr,
+                                             torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol, double V,
+                                             double h, double eps, double scorr_k, double scorr_n, double w_dq,
+                                             double grad2_lattice) {
+  x = x.contiguous();
+  wall = wall.contiguous();
+  const int64_t n = x.size(0);
+  auto dx = torch::empty_like(x), C = torch::empty({n}, x.options());
+  std::vector<double> lam(n);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "pbf_iteration_cpu", [&] {
+    pbf_iteration_impl<scalar_t>(x.data_ptr<scalar_t>(), wall.data_ptr<scalar_t>(), rowptr.data_ptr<int64_t>(),
+                                 col.data_ptr<int64_t>(), browptr.data_ptr<int64_t>(), bcol.data_ptr<int64_t>(), n, V,
+                                 h, eps, scorr_k, scorr_n, w_dq, grad2_lattice, dx.data_ptr<scalar_t>(),
+                                 C.data_ptr<scalar_t>(), lam.data());
+  });
+  return {dx, C};
+}
+
 // XSPH (Monaghan 1989) over CSR pairs with stored kernel values w: v_i + c V sum_j (v_j - v_i) W_ij
 torch::Tensor csr_xsph_cpu(torch::Tensor v, torch::Tensor rowptr, torch::Tensor col, torch::Tensor w, double cV) {
   v = v.contiguous();
