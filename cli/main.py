@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
-from gf_core.errors import GFError
+# The simulation commands run the native SPH engine, whose OpenMP threads meet at a barrier many
+# times per step. Spinning there (libgomp's default) makes a run several times slower as soon as
+# anything else uses the cores; sleeping costs a little on an idle machine (BENCHMARKS.md, "Native
+# SPH engine", busy machine). OpenMP reads this when it loads, with torch, so it is set here,
+# before any import of torch, for these commands only; a setting of the user's own wins.
+SIM_COMMANDS = ("simulate", "predict", "edit")
+if len(sys.argv) > 1 and sys.argv[1] in SIM_COMMANDS and not {"OMP_WAIT_POLICY", "GOMP_SPINCOUNT"} & set(os.environ):
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
-from . import (cmd_addon, cmd_bench, cmd_demo, cmd_edit, cmd_evaluate, cmd_export, cmd_inspect, cmd_predict,
-               cmd_reconstruct, cmd_render_dataset, cmd_simulate)
+from gf_core.errors import GFError  # noqa: E402
+
+from . import (cmd_addon, cmd_bench, cmd_demo, cmd_edit, cmd_evaluate, cmd_export, cmd_inspect,  # noqa: E402
+               cmd_predict, cmd_reconstruct, cmd_render_dataset, cmd_simulate)
 
 COMMANDS = [cmd_demo, cmd_simulate, cmd_render_dataset, cmd_reconstruct, cmd_evaluate, cmd_predict, cmd_edit,
             cmd_export, cmd_inspect, cmd_bench, cmd_addon]

@@ -472,7 +472,7 @@ std::vector<torch::Tensor> dfsph_neighbourhood_cpu(torch::Tensor x, torch::Tenso
 
 namespace {
 
-// The DFSPH operators over the neighbourhood (see dfsph.py):
+// The DFSPH operators over the neighbourhood (see dfsph.py), one row at a time:
 //   div_k(v):  fluid i: sum_j (v_i - v_j) . V gradW_ij + sum_b v_i . V gradW_ib;  wall b: sum_i v_i . V gradW_ib
 //   dv(kappa): fluid i: -dt [sum_j (k_i + k_j) V gradW_ij + sum_b (k_i + k_b) V gradW_ib]   (= -dt D^T kappa)
 template <typename S>
@@ -481,10 +481,10 @@ struct DfsphOps {
   const int64_t *rp, *cj, *brp, *bc, *wrow, *wfl, *wpair;
   const S *gw, *gwb;
 
-  void div(const S* v, double* out) const {
-#pragma omp parallel for schedule(static)
-    for (int64_t i = 0; i < n; ++i) {
-      double acc = 0;
+  double div(const S* v, int64_t k) const {
+    double acc = 0;
+    if (k < n) {
+      const int64_t i = k;
       const double vi[3] = {v[3 * i], v[3 * i + 1], v[3 * i + 2]};
       for (int64_t p = rp[i]; p < rp[i + 1]; ++p) {
         const int64_t j = cj[p];
@@ -493,35 +493,29 @@ struct DfsphOps {
       }
       for (int64_t p = brp[i]; p < brp[i + 1]; ++p)
         acc += vi[0] * gwb[3 * p] + vi[1] * gwb[3 * p + 1] + vi[2] * gwb[3 * p + 2];
-      out[i] = acc;
-    }
-#pragma omp parallel for schedule(static)
-    for (int64_t b = 0; b < nw; ++b) {
-      double acc = 0;
+    } else {
+      const int64_t b = k - n;
       for (int64_t q = wrow[b]; q < wrow[b + 1]; ++q) {
         const int64_t i = wfl[q], p = wpair[q];
         acc += (double)v[3 * i] * gwb[3 * p] + (double)v[3 * i + 1] * gwb[3 * p + 1] + (double)v[3 * i + 2] * gwb[3 * p + 2];
       }
-      out[n + b] = acc;
     }
+    return acc;
   }
 
-  // v = v0 - dt D^T kappa
-  void apply(const S* v0, const double* kappa, double dt, S* v) const {
-#pragma omp parallel for schedule(static)
-    for (int64_t i = 0; i < n; ++i) {
-      double acc[3] = {0, 0, 0};
-      const double ki = kappa[i];
-      for (int64_t p = rp[i]; p < rp[i + 1]; ++p) {
-        const double k = ki + kappa[cj[p]];
-        for (int a = 0; a < 3; ++a) acc[a] += k * gw[3 * p + a];
-      }
-      for (int64_t p = brp[i]; p < brp[i + 1]; ++p) {
-        const double k = ki + kappa[n + bc[p]];
-        for (int a = 0; a < 3; ++a) acc[a] += k * gwb[3 * p + a];
-      }
-      for (int a = 0; a < 3; ++a) v[3 * i + a] = (S)((double)v0[3 * i + a] - dt * acc[a]);
+  // v_i = v0_i - dt (D^T kappa)_i
+  void apply(const S* v0, const double* kappa, double dt, S* v, int64_t i) const {
+    double acc[3] = {0, 0, 0};
+    const double ki = kappa[i];
+    for (int64_t p = rp[i]; p < rp[i + 1]; ++p) {
+      const double k = ki + kappa[cj[p]];
+      for (int a = 0; a < 3; ++a) acc[a] += k * gw[3 * p + a];
     }
+    for (int64_t p = brp[i]; p < brp[i + 1]; ++p) {
+      const double k = ki + kappa[n + bc[p]];
+      for (int a = 0; a < 3; ++a) acc[a] += k * gwb[3 * p + a];
+    }
+    for (int a = 0; a < 3; ++a) v[3 * i + a] = (S)((double)v0[3 * i + a] - dt * acc[a]);
   }
 };
 
@@ -529,50 +523,74 @@ struct DfsphOps {
 
 namespace {
 
+// One parallel region for the whole solve: per iteration three barriers (after the velocities,
+// after the residuals and their sum, after the kappa update); every thread takes the same
+// decision from the same sum, so no serial section is needed. Fewer thread wake-ups matter most
+// on a busy machine or with OMP_WAIT_POLICY=PASSIVE.
 template <typename S>
 void solve_impl(torch::Tensor& v, double* kappa, const std::vector<torch::Tensor>& nb, const int64_t* rp,
                 const int64_t* cj, const int64_t* brp, const int64_t* bc, int64_t n, int64_t m, int64_t mode, double dt,
                 double scale, double tol, int64_t min_iters, int64_t max_iters, double* out) {
-  DfsphOps<S> ops{n, m - n, rp, cj, brp, bc, nb[7].data_ptr<int64_t>(), nb[8].data_ptr<int64_t>(),
-                  nb[9].data_ptr<int64_t>(), nb[1].data_ptr<S>(), nb[3].data_ptr<S>()};
+  const DfsphOps<S> ops{n, m - n, rp, cj, brp, bc, nb[7].data_ptr<int64_t>(), nb[8].data_ptr<int64_t>(),
+                        nb[9].data_ptr<int64_t>(), nb[1].data_ptr<S>(), nb[3].data_ptr<S>()};
   S* pv = v.data_ptr<S>();
   const S* rho = nb[4].data_ptr<S>();
   const S* alpha = nb[5].data_ptr<S>();
   const int64_t* count = nb[6].data_ptr<int64_t>();
   std::vector<S> v0(pv, pv + 3 * n);
   std::vector<double> res(m), update(m, 0.0), kprev(m);
-  double err = 0, err_prev = INFINITY, omega = 1.0;
-  int64_t it = 0, halvings = 0;
-  bool have_update = false;
-  for (it = 1; it <= max_iters; ++it) {
-    ops.apply(v0.data(), kappa, dt, pv);
-    ops.div(pv, res.data());
-    double esum = 0;
-#pragma omp parallel for reduction(+ : esum) schedule(static)
-    for (int64_t k = 0; k < m; ++k) {
-      const double r = mode == 0 ? (double)rho[k] + dt * res[k] - 1.0 : (count[k] >= 20 ? res[k] * dt : 0.0);
-      res[k] = r;
-      esum += r > 0 ? r : 0.0;
+  const int nt = num_threads();
+  std::vector<double> partial(nt, 0.0);
+  int64_t it_out = max_iters, halvings_out = 0;
+  double err_out = 0;
+#pragma omp parallel num_threads(nt)
+  {
+    const int t = thread_id(), T = team_size();
+    const int64_t f0 = n * t / T, f1 = n * (t + 1) / T, k0 = m * t / T, k1 = m * (t + 1) / T;
+    double err = 0, err_prev = INFINITY, omega = 1.0;
+    int64_t halvings = 0, it;
+    bool have_update = false;
+    for (it = 1; it <= max_iters; ++it) {
+      for (int64_t i = f0; i < f1; ++i) ops.apply(v0.data(), kappa, dt, pv, i);
+#pragma omp barrier
+      double esum = 0;
+      for (int64_t k = k0; k < k1; ++k) {
+        const double d = ops.div(pv, k);
+        const double r = mode == 0 ? (double)rho[k] + dt * d - 1.0 : (count[k] >= 20 ? d * dt : 0.0);
+        res[k] = r;
+        esum += r > 0 ? r : 0.0;
+      }
+      partial[t] = esum;
+#pragma omp barrier
+      esum = 0;
+      for (int u = 0; u < T; ++u) esum += partial[u];  // the same order in every thread
+      err = esum / (double)std::max<int64_t>(n, 1);
+      if (have_update && !(err <= 2.0 * err_prev) && halvings < 20) {
+        omega *= 0.5;
+        ++halvings;
+        for (int64_t k = k0; k < k1; ++k) kappa[k] = kprev[k] + omega * update[k];
+#pragma omp barrier
+        continue;
+      }
+      if (it > min_iters && err <= tol) break;
+      err_prev = err;
+      have_update = true;
+      for (int64_t k = k0; k < k1; ++k) {
+        kprev[k] = kappa[k];
+        update[k] = (res[k] > 0 ? res[k] : 0.0) * (double)alpha[k] / scale;
+        kappa[k] += omega * update[k];
+      }
+#pragma omp barrier
     }
-    err = esum / (double)std::max<int64_t>(n, 1);
-    if (have_update && !(err <= 2.0 * err_prev) && halvings < 20) {
-      omega *= 0.5;
-      ++halvings;
-      for (int64_t k = 0; k < m; ++k) kappa[k] = kprev[k] + omega * update[k];
-      continue;
-    }
-    if (it > min_iters && err <= tol) break;
-    err_prev = err;
-    have_update = true;
-    for (int64_t k = 0; k < m; ++k) {
-      kprev[k] = kappa[k];
-      update[k] = (res[k] > 0 ? res[k] : 0.0) * (double)alpha[k] / scale;
-      kappa[k] += omega * update[k];
+    if (t == 0) {
+      it_out = std::min(it, max_iters);
+      err_out = err;
+      halvings_out = halvings;
     }
   }
-  out[0] = (double)std::min(it, max_iters);
-  out[1] = err;
-  out[2] = (double)halvings;
+  out[0] = (double)it_out;
+  out[1] = err_out;
+  out[2] = (double)halvings_out;
 }
 
 template <typename S>
