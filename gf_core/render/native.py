@@ -33,7 +33,7 @@ import torch
 CSRC = Path(__file__).parent / "csrc"
 CPU_SOURCES = ("ext.cpp", "render_cpu.cpp", "sph_cpu.cpp", "sim_cpu.cpp")
 CUDA_SOURCES = ("render_cuda.cu", "sph_cuda.cu")
-HEADERS = ("gaussian_math.h", "ops.h", "sph_math.h")
+HEADERS = ("gaussian_math.h", "ops.h", "parallel.h", "sph_math.h")
 CXX_FLAGS = ["-O3", "-fopenmp", "-march=native"]
 NVCC_FLAGS = ["-O3", "--use_fast_math", "-lineinfo", "--expt-relaxed-constexpr"]
 _ext = None

@@ -8,33 +8,16 @@
 #include <numeric>
 #include <vector>
 
-#ifdef _OPENMP
-#include <omp.h>
-#endif
-
 #include "gaussian_math.h"
+#include "parallel.h"
 #include "ops.h"
 
 namespace {
 
 using gf::Cam;
+using gf::num_threads;
 using gf::Proj;
-
-int num_threads() {
-#ifdef _OPENMP
-  return omp_get_max_threads();
-#else
-  return 1;
-#endif
-}
-
-int thread_id() {
-#ifdef _OPENMP
-  return omp_get_thread_num();
-#else
-  return 0;
-#endif
-}
+using gf::thread_id;
 
 // ================================ projection ======================================================
 template <typename S>

@@ -12,45 +12,12 @@
 #include <cmath>
 #include <vector>
 
-#ifdef _OPENMP
-#include <omp.h>
-#endif
-
+#include "parallel.h"
 #include "sph_math.h"
 
 namespace gf {
 
 namespace {
-
-int num_threads() {
-#ifdef _OPENMP
-  return omp_get_max_threads();
-#else
-  return 1;
-#endif
-}
-
-int team_size() {
-#ifdef _OPENMP
-  return omp_get_num_threads();
-#else
-  return 1;
-#endif
-}
-
-int thread_id() {
-#ifdef _OPENMP
-  return omp_get_thread_num();
-#else
-  return 0;
-#endif
-}
-
-int64_t table_for(int64_t m) {
-  int64_t t = 1;
-  while (t < 2 * m) t <<= 1;
-  return t;
-}
 
 // Cell coordinates bounded so that far-away (finite) points cannot overflow the integer maths;
 // points beyond the bound share an edge cell, which stays correct (distances are checked exactly).
@@ -126,7 +93,7 @@ std::vector<torch::Tensor> build_grid(const torch::Tensor& y, double cell) {
     lo[a] = m;
   }
   auto cell_t = torch::full({1}, cell, f64);
-  const int64_t table = table_for(std::max<int64_t>(M, 1));
+  const int64_t table = hash_table_size(std::max<int64_t>(M, 1));
   auto starts_t = torch::zeros({table + 1}, i64), order_t = torch::empty({M}, i64);
   auto cells_t = torch::empty({M, 3}, i64), pos_t = torch::empty({M, 3}, y.options());
   int64_t* starts = starts_t.data_ptr<int64_t>();

@@ -6,22 +6,13 @@
 #include <cmath>
 #include <vector>
 
-#ifdef _OPENMP
-#include <omp.h>
-#endif
-
 #include "ops.h"
+#include "parallel.h"
 #include "sph_math.h"
 
 namespace gf {
 
 namespace {
-
-int64_t table_size(int64_t m) {
-  int64_t t = 1;
-  while (t < 2 * m) t <<= 1;
-  return t;
-}
 
 template <typename S>
 void knn_impl(const S* x, int64_t N, const S* y, int64_t M, int k, double radius, bool exclude_self, bool sorted,
@@ -33,7 +24,7 @@ void knn_impl(const S* x, int64_t N, const S* y, int64_t M, int k, double radius
     g.lo[a] = lo;
   }
   g.inv = 1.0 / radius;
-  g.table = table_size(M);
+  g.table = hash_table_size(M);
   // counting sort of y by cell hash; the sorted cells and positions are copied out so that a
   // bucket's points lie contiguously in memory
   std::vector<int64_t> hash(M), start(g.table + 1, 0), order(M);
@@ -117,17 +108,11 @@ void density_fwd_impl(int64_t N, int64_t K, const S* p, const int64_t* nb, doubl
 template <typename S>
 void density_bwd_impl(int64_t N, int64_t K, const S* p, const int64_t* nb, double h, const S* g, S* out) {
   const S h2 = (S)(h * h), c = (S)(315.0 / (64.0 * M_PI * std::pow(h, 9)));
-  int nt = 1;
-#ifdef _OPENMP
-  nt = omp_get_max_threads();
-#endif
+  const int nt = num_threads();
   std::vector<std::vector<double>> bufs(nt);
 #pragma omp parallel
   {
-    int tid = 0;
-#ifdef _OPENMP
-    tid = omp_get_thread_num();
-#endif
+    const int tid = thread_id();
     std::vector<double>& acc = bufs[tid];
     acc.assign((size_t)N * 3, 0.0);
 #pragma omp for schedule(static)

@@ -164,8 +164,7 @@ std::vector<torch::Tensor> knn_cuda(torch::Tensor x, torch::Tensor y, int64_t k,
   GridSpec g;
   for (int a = 0; a < 3; ++a) g.lo[a] = lo.data_ptr<double>()[a];
   g.inv = 1.0 / radius;
-  g.table = 1;
-  while (g.table < 2 * M) g.table <<= 1;
+  g.table = hash_table_size(M);
   auto i64 = x.options().dtype(torch::kInt64);
   auto cells = torch::empty({M, 3}, i64), hash = torch::empty({M}, i64);
   auto counts = torch::zeros({g.table}, x.options().dtype(torch::kInt32));

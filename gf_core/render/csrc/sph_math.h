@@ -17,6 +17,13 @@ struct GridSpec {
   int64_t table;  // number of hash buckets (a power of two)
 };
 
+// Buckets of a hash table for m points: a power of two, at least 2m (few collisions)
+inline int64_t hash_table_size(int64_t m) {
+  int64_t t = 1;
+  while (t < 2 * m) t <<= 1;
+  return t;
+}
+
 GF_HD void cell_of(const GridSpec& g, double x, double y, double z, int64_t c[3]) {
   c[0] = (int64_t)floor((x - g.lo[0]) * g.inv);
   c[1] = (int64_t)floor((y - g.lo[1]) * g.inv);
