@@ -179,35 +179,48 @@ VISCOSITY_BOUNDARIES = ("free-slip", "no-slip")
 
 
 def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, boundary: str = "free-slip",
-                       max_iters: int = 50, tol: float = 1e-4, kernel: kernels.Kernel = kernels.CUBIC):
+                       max_iters: int = 50, tol: float = 1e-4, kernel: kernels.Kernel = kernels.CUBIC,
+                       lists=None):
     """Solve (I - nu dt L) v_new = v with conjugate gradients, L the SPH Laplacian of Weiler et al.
     2018: (L v)_i = 10 sum_j V ((v_i - v_j) . x_ij) / (|x_ij|^2 + 0.01 h^2) grad W_ij.
     ``boundary``: "free-slip" (default, as SPlisHSPlasH's default) leaves the walls out of the
     viscosity, so a fluid slides along them; "no-slip" adds the same term with the wall particles
     at rest, which brakes every particle near a wall (the falling sphere's splash with either:
     BENCHMARKS.md, "Viscosity at the walls"). Unconditionally stable: honey-like
-    viscosity needs no sub-stepping. Returns (v_new, iterations)."""
+    viscosity needs no sub-stepping. ``lists``: the native CSR neighbour lists (rowptr, col,
+    wall rowptr, wall col) of x, to apply the operator natively (the pair lists i, j, bi, bb are
+    then not used). Returns (v_new, iterations)."""
     if boundary not in VISCOSITY_BOUNDARIES:
         raise InputError("viscosity", f"unknown viscosity boundary {boundary!r} ({', '.join(VISCOSITY_BOUNDARIES)})")
     if nu_dt == 0.0 or v.shape[0] == 0:
         return v, 0
-    if boundary == "free-slip":
-        bi, bb = bi[:0], bb[:0]
-    d = x[i] - x[j]
-    r = d.norm(dim=-1)
-    g = kernel.grad(d, r, h)
-    coef = 10.0 * V / (r * r + 0.01 * h * h)
-    db = x[bi] - xb[bb]
-    rb = db.norm(dim=-1)
-    gb = kernel.grad(db, rb, h)
-    coef_b = 10.0 * V / (rb * rb + 0.01 * h * h)
+    if lists is not None:
+        from ..render import native
 
-    def A(u):  # (I - nu dt L) u
-        Lu = torch.zeros_like(u)
-        Lu.index_add_(0, i, (coef * ((u[i] - u[j]) * d).sum(-1))[:, None] * g)
-        if bi.numel():
-            Lu.index_add_(0, bi, (coef_b * (u[bi] * db).sum(-1))[:, None] * gb)
-        return u - nu_dt * Lu
+        ext, (rowptr, col, browptr, bcol) = native.load(), lists
+        kind = {"cubic": 0, "wendland": 1}[kernel.name]
+
+        def A(u):  # (I - nu dt L) u, natively
+            return ext.viscosity_apply(u.contiguous(), x, xb, rowptr, col, browptr, bcol, V, h, nu_dt,
+                                       boundary == "no-slip", kind)
+    else:
+        if boundary == "free-slip":
+            bi, bb = bi[:0], bb[:0]
+        d = x[i] - x[j]
+        r = d.norm(dim=-1)
+        g = kernel.grad(d, r, h)
+        coef = 10.0 * V / (r * r + 0.01 * h * h)
+        db = x[bi] - xb[bb]
+        rb = db.norm(dim=-1)
+        gb = kernel.grad(db, rb, h)
+        coef_b = 10.0 * V / (rb * rb + 0.01 * h * h)
+
+        def A(u):  # (I - nu dt L) u
+            Lu = torch.zeros_like(u)
+            Lu.index_add_(0, i, (coef * ((u[i] - u[j]) * d).sum(-1))[:, None] * g)
+            if bi.numel():
+                Lu.index_add_(0, bi, (coef_b * (u[bi] * db).sum(-1))[:, None] * gb)
+            return u - nu_dt * Lu
 
     sol = v.clone()
     res = v - A(sol)

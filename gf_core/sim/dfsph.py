@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..neighbors import build_grid, csr_rows, neighbor_lists, neighbor_pairs
+from ..neighbors import build_grid, neighbor_lists, neighbor_pairs
 from . import kernels
 from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
                      implicit_viscosity, lattice_volume, limit_speed, pick_backend, xsph)
@@ -195,13 +195,6 @@ class DFSPH(SolverBase):
         return dict(native=t, rowptr=rowptr, col=col, browptr=browptr, bcol=bcol, w=t[0], rho=t[4][:n],
                     rho_all=t[4], alpha=t[5], count=t[6], n=n)
 
-    def _pairs(self, nb):
-        """(i, j, bi, bb) pair lists of a neighbourhood (the native one keeps CSR lists)."""
-        if "i" not in nb:
-            nb["i"], nb["j"] = csr_rows(nb["rowptr"]), nb["col"]
-            nb["bi"], nb["bb"] = csr_rows(nb["browptr"]), nb["bcol"]
-        return nb["i"], nb["j"], nb["bi"], nb["bb"]
-
     def _div(self, v, nb):
         """Density rates of fluid and wall particles (one vector, fluid first):
         sum_j V (v_i - v_j) . gradW_ij + sum_b V v_i . gradW_ib   and   sum_i V v_i . gradW_ib."""
@@ -308,9 +301,14 @@ class DFSPH(SolverBase):
         elif p.xsph:
             v.copy_(xsph(v, nb["i"], nb["j"], nb["r"], self.V, self.h, p.xsph, self.kernel))
         visc_it = 0
-        if p.viscosity:
-            i, j, bi, bb = self._pairs(nb)
-            vv, visc_it = implicit_viscosity(v, x, i, j, bi, bb, self.wall,
+        if p.viscosity and "native" in nb:
+            lists = (nb["rowptr"], nb["col"], nb["browptr"], nb["bcol"])
+            vv, visc_it = implicit_viscosity(v, x, None, None, None, None, self.wall, self.V, self.h,
+                                             p.viscosity * dt, kernel=self.kernel, boundary=p.viscosity_boundary,
+                                             lists=lists)
+            v.copy_(vv)
+        elif p.viscosity:
+            vv, visc_it = implicit_viscosity(v, x, nb["i"], nb["j"], nb["bi"], nb["bb"], self.wall,
                                              self.V, self.h, p.viscosity * dt, kernel=self.kernel,
                                              boundary=p.viscosity_boundary)
             v.copy_(vv)

@@ -129,7 +129,7 @@ class PBF(SolverBase):
         x.add_(dt * v)
         enforce_box(x, v, self.domain, 0.1 * self.spacing)
         constraints = self._constraints_native if self.native else self._constraints
-        C, moved, (i, j, bi, bb) = constraints(x, v)
+        C, moved, (i, j, bi, bb), lists = constraints(x, v)
         v.copy_((x - x0) / dt)
         if p.vorticity:
             self._vorticity(x, v, i, j, dt)
@@ -139,7 +139,7 @@ class PBF(SolverBase):
         visc_it = 0
         if p.viscosity:
             vv, visc_it = implicit_viscosity(v, x, i, j, bi, bb, self.wall, self.V, self.h, p.viscosity * dt,
-                                             boundary=p.viscosity_boundary)
+                                             boundary=p.viscosity_boundary, lists=lists)
             v.copy_(vv)
         limited += limit_speed(v, self.vmax)
         err = float(C.mean()) if C is not None and C.numel() else 0.0
@@ -148,7 +148,7 @@ class PBF(SolverBase):
 
     def _constraints(self, x, v):
         """Step 3 on the torch path (the reference): pair lists of x*, then ``iterations`` rounds of
-        lambda and dx as tensor ops. Returns (C, particles clamped, pair lists)."""
+        lambda and dx as tensor ops. Returns (C, particles clamped, pair lists, None: no CSR lists)."""
         p = self.p
         i, j = neighbor_pairs(x, self.h)
         bi, bb = neighbor_pairs(x, self.h, self.wall) if self.wall.numel() else (i[:0], j[:0])
@@ -168,7 +168,7 @@ class PBF(SolverBase):
             dx.index_add_(0, bi, lam[bi][:, None] * gwb)
             x.add_(dx)
             moved = enforce_box(x, v, self.domain, 0.1 * self.spacing)
-        return C, moved, (i, j, bi, bb)
+        return C, moved, (i, j, bi, bb), None
 
     def _constraints_native(self, x, v):
         """The same iterations, each one native call over CSR lists (``csrc/sim_cpu.cpp``; the
@@ -186,7 +186,7 @@ class PBF(SolverBase):
                                       float(p.scorr_k), float(p.scorr_n), self.w_dq, self.grad2_lattice)
             x.add_(dx)
             moved = enforce_box(x, v, self.domain, 0.1 * self.spacing)
-        return C, moved, (csr_rows(rowptr), col, csr_rows(browptr), bcol)
+        return C, moved, (csr_rows(rowptr), col, csr_rows(browptr), bcol), (rowptr, col, browptr, bcol)
 
     def _vorticity(self, x, v, i, j, dt):
         """Vorticity confinement (Fedkiw et al. 2001 as used by PBF): f = eps (N x omega)."""

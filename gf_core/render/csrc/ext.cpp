@@ -203,6 +203,20 @@ std::vector<Tensor> pbf_iteration(Tensor x, Tensor wall, Tensor rowptr, Tensor c
   return gf::pbf_iteration_cpu(x, wall, rowptr, col, browptr, bcol, V, h, eps, scorr_k, scorr_n, w_dq, grad2_lattice);
 }
 
+Tensor viscosity_apply(Tensor u, Tensor x, Tensor wall, Tensor rowptr, Tensor col, Tensor browptr, Tensor bcol,
+                       double V, double h, double nu_dt, bool no_slip, int64_t kernel) {
+  const char* op = "viscosity_apply";
+  check_same({{"u", &u}, {"x", &x}, {"wall", &wall}}, op);
+  check_points(u, "u", op);
+  check_points(x, "x", op);
+  check_points(wall, "wall", op);
+  TORCH_CHECK(u.size(0) == x.size(0), op, ": u and x need the same rows");
+  check_csr(rowptr, col, x.size(0), "the fluid neighbour lists", op);
+  check_csr(browptr, bcol, x.size(0), "the wall neighbour lists", op);
+  TORCH_CHECK(kernel == 0 || kernel == 1, op, ": kernel must be 0 (cubic) or 1 (Wendland)");
+  return gf::viscosity_apply_cpu(u, x, wall, rowptr, col, browptr, bcol, V, h, nu_dt, no_slip, kernel);
+}
+
 Tensor kernel_sum(Tensor x, Tensor y, std::vector<Tensor> grid, double h, int64_t kernel, bool exclude_self) {
   check_same({{"x", &x}, {"y", &y}}, "kernel_sum");
   check_points(x, "x", "kernel_sum");
@@ -250,6 +264,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("dfsph_neighbourhood", &dfsph_neighbourhood, "DFSPH pair kernels, densities and factors over CSR lists");
   m.def("dfsph_solve", &dfsph_solve, "DFSPH Jacobi solve (density or divergence) over CSR lists");
   m.def("pbf_iteration", &pbf_iteration, "one PBF constraint iteration over CSR lists: (dx, C)");
+  m.def("viscosity_apply", &viscosity_apply, "(I - nu dt L) u, the implicit viscosity operator, over CSR lists");
   m.def("kernel_sum", &kernel_sum, "sum_j W(|x_i - y_j|, h) over neighbours within h (cubic, Wendland or poly6)");
   m.def("csr_xsph", &csr_xsph, "XSPH velocity smoothing over CSR lists");
   m.def("constants", &constants, "the renderer constants compiled into the extension");

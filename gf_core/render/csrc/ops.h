@@ -73,6 +73,9 @@ std::vector<torch::Tensor> pbf_iteration_cpu(torch::Tensor x, torch::Tensor wall
                                              torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol, double V,
                                              double h, double eps, double scorr_k, double scorr_n, double w_dq,
                                              double grad2_lattice);
+torch::Tensor viscosity_apply_cpu(torch::Tensor u, torch::Tensor x, torch::Tensor wall, torch::Tensor rowptr,
+                                  torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol, double V, double h,
+                                  double nu_dt, bool no_slip, int64_t kernel);
 torch::Tensor kernel_sum_cpu(torch::Tensor x, torch::Tensor y, std::vector<torch::Tensor> grid, double h,
                              int64_t kernel, bool exclude_self);
 torch::Tensor csr_xsph_cpu(torch::Tensor v, torch::Tensor rowptr, torch::Tensor col, torch::Tensor w, double cV);

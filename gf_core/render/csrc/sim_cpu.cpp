@@ -696,6 +696,72 @@ std::vector<torch::Tensor> pbf_iteration_cpu(torch::Tensor x, torch::Tensor wall
   return {dx, C};
 }
 
+namespace {
+
+// grad W(d) = d * grad_scale(|d|) for the cubic spline (kind 0, kernels.cubic_grad) or Wendland C2 (kind 1)
+inline double kernel_grad_scale(int kind, double r, double h) {
+  if (kind == 1) return Wendland(h).grad_scale(r);
+  if (!(r > 1e-9 * h)) return 0.0;
+  const double q = r / h, l = 48.0 / (M_PI * h * h * h);
+  const double f = q <= 0.5 ? l * q * (3.0 * q - 2.0) : -l * std::max(1.0 - q, 0.0) * std::max(1.0 - q, 0.0);
+  return f / (h * r);
+}
+
+template <typename S>
+void viscosity_impl(const S* pu, const S* px, const S* pw, const int64_t* rp, const int64_t* cj, const int64_t* brp,
+                    const int64_t* bc, int64_t n, double V, double h, double nu_dt, bool no_slip, int kind, S* out) {
+  const double eta = 0.01 * h * h;
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    double L[3] = {0, 0, 0};
+    for (int64_t p = rp[i]; p < rp[i + 1]; ++p) {
+      const int64_t j = cj[p];
+      double d[3], du = 0, r2 = 0;
+      for (int a = 0; a < 3; ++a) {
+        d[a] = (double)px[3 * i + a] - px[3 * j + a];
+        du += ((double)pu[3 * i + a] - pu[3 * j + a]) * d[a];
+        r2 += d[a] * d[a];
+      }
+      const double c = 10.0 * V / (r2 + eta) * du * kernel_grad_scale(kind, std::sqrt(r2), h);
+      for (int a = 0; a < 3; ++a) L[a] += c * d[a];
+    }
+    if (no_slip)
+      for (int64_t p = brp[i]; p < brp[i + 1]; ++p) {
+        const int64_t b = bc[p];
+        double d[3], du = 0, r2 = 0;
+        for (int a = 0; a < 3; ++a) {
+          d[a] = (double)px[3 * i + a] - pw[3 * b + a];
+          du += (double)pu[3 * i + a] * d[a];
+          r2 += d[a] * d[a];
+        }
+        const double c = 10.0 * V / (r2 + eta) * du * kernel_grad_scale(kind, std::sqrt(r2), h);
+        for (int a = 0; a < 3; ++a) L[a] += c * d[a];
+      }
+    for (int a = 0; a < 3; ++a) out[3 * i + a] = (S)((double)pu[3 * i + a] - nu_dt * L[a]);
+  }
+}
+
+}  // namespace
+
+// (I - nu dt L) u with L the SPH Laplacian of Weiler et al. 2018 (common.implicit_viscosity):
+// (L u)_i = 10 sum_j V ((u_i - u_j) . x_ij) / (|x_ij|^2 + 0.01 h^2) grad W_ij, plus the same with
+// the wall particles at rest when no_slip; the conjugate-gradient loop stays in Python.
+torch::Tensor viscosity_apply_cpu(torch::Tensor u, torch::Tensor x, torch::Tensor wall, torch::Tensor rowptr,
+                                  torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol, double V, double h,
+                                  double nu_dt, bool no_slip, int64_t kernel) {
+  u = u.contiguous();
+  x = x.contiguous();
+  wall = wall.contiguous();
+  auto out = torch::empty_like(u);
+  AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "viscosity_apply_cpu", [&] {
+    viscosity_impl<scalar_t>(u.data_ptr<scalar_t>(), x.data_ptr<scalar_t>(), wall.data_ptr<scalar_t>(),
+                             rowptr.data_ptr<int64_t>(), col.data_ptr<int64_t>(), browptr.data_ptr<int64_t>(),
+                             bcol.data_ptr<int64_t>(), u.size(0), V, h, nu_dt, no_slip, (int)kernel,
+                             out.data_ptr<scalar_t>());
+  });
+  return out;
+}
+
 // XSPH (Monaghan 1989) over CSR pairs with stored kernel values w: v_i + c V sum_j (v_j - v_i) W_ij
 torch::Tensor csr_xsph_cpu(torch::Tensor v, torch::Tensor rowptr, torch::Tensor col, torch::Tensor w, double cV) {
   v = v.contiguous();
