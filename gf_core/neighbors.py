@@ -46,10 +46,9 @@ def neighbor_lists(x: torch.Tensor, radius: float, y: torch.Tensor | None = None
     if not radius > 0:
         raise ValueError(f"neighbour radius must be positive, got {radius}")
     same = y is None
-    y = x if same else y
-    rowptr, col = native.load().radius_pairs(x.detach().contiguous(), y.detach().contiguous(),
-                                             [] if grid is None else grid, float(radius), same)
-    return rowptr, col
+    xc = x.detach().contiguous()
+    yc = xc if same else y.detach().contiguous()  # the very same tensor when x is searched among itself
+    return native.load().radius_pairs(xc, yc, [] if grid is None else grid, float(radius), same)
 
 
 def csr_rows(rowptr: torch.Tensor) -> torch.Tensor:

@@ -75,7 +75,7 @@ def test_neighbor_lists_between_sets_with_a_grid_built_once():
         neighbor_lists(x, 0.12, walls[:10], grid=grid)
 
 
-def test_neighbor_lists_refuse_nan_and_cuda_style_misuse():
+def test_neighbor_lists_refuse_bad_input():
     x = torch.rand(20, 3)
     x[4, 2] = float("nan")
     with pytest.raises(ValueError, match="NaN"):
@@ -84,6 +84,13 @@ def test_neighbor_lists_refuse_nan_and_cuda_style_misuse():
         neighbor_lists(x, 0.3)
     with pytest.raises(ValueError, match="unknown neighbour backend"):
         neighbor_pairs(torch.rand(5, 3), 0.3, backend="fast")
+    y = torch.rand(20, 3)
+    with pytest.raises(RuntimeError, match="same tensor"):  # "leave i out of its own row" needs x to be y
+        native.load().radius_pairs(y, y.clone(), [], 0.3, True)
+    nc = torch.rand(3, 20).t()  # not contiguous: still searched among itself
+    rowptr, col = neighbor_lists(nc, 0.3)
+    assert pair_set(*neighbor_pairs_torch(nc, 0.3)) == pair_set(
+        torch.repeat_interleave(torch.arange(20), torch.diff(rowptr)), col)
 
 
 @pytest.mark.parametrize("kernel", [kernels.CUBIC, kernels.WENDLAND])

@@ -264,12 +264,12 @@ class Measure:
             from ..neighbors import build_grid
             from ..render import native
 
-            ext = native.load()
-            rho += ext.kernel_sum(x.contiguous(), x.contiguous(), [], self.h, kind, True)
+            ext, xc = native.load(), x.contiguous()
+            rho += ext.kernel_sum(xc, xc, [], self.h, kind, True)
             if self.wall.numel():
                 if self._wall_grid is None:
                     self._wall_grid = build_grid(self.wall, self.h)
-                rho += ext.kernel_sum(x.contiguous(), self.wall, self._wall_grid, self.h, kind, False)
+                rho += ext.kernel_sum(xc, self.wall, self._wall_grid, self.h, kind, False)
             return rho
         i, j = neighbor_pairs(x, self.h)
         W = self.kernel.W

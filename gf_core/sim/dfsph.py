@@ -48,6 +48,7 @@ from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, esti
 
 
 WALL_ALPHA_CAP = 4.0  # wall factor alpha_b <= 4 x a full-lattice fluid particle's (see _neighbourhood)
+DIVERGENCE_MIN_NEIGHBOURS = 20  # fewer (fluid + wall): no divergence estimate (see _residuals)
 
 
 @dataclass
@@ -237,8 +238,8 @@ class DFSPH(SolverBase):
 
             mode = {"density": 0, "divergence": 1}[residual]
             kappa, info = native.load().dfsph_solve(v, kappa, nb["rowptr"], nb["col"], nb["browptr"], nb["bcol"],
-                                                    nb["native"], mode, dt, scale, tol, min_iters,
-                                                    self.p.max_iterations)
+                                                    nb["native"], mode, DIVERGENCE_MIN_NEIGHBOURS, dt, scale, tol,
+                                                    min_iters, self.p.max_iterations)
             return kappa, int(info[0]), float(info[1]), int(info[2])
         residual = self._residuals(residual, nb, dt)
         v0 = v.clone()
@@ -267,7 +268,7 @@ class DFSPH(SolverBase):
                     their divergence estimate is meaningless."""
         if which == "density":
             return lambda vv: nb["rho_all"] + dt * self._div(vv, nb) - 1.0
-        enough = nb["count"] >= 20
+        enough = nb["count"] >= DIVERGENCE_MIN_NEIGHBOURS
         zero = torch.zeros_like(nb["alpha"])
         return lambda vv: torch.where(enough, self._div(vv, nb), zero) * dt
 

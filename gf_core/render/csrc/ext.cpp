@@ -135,6 +135,12 @@ void check_points(const Tensor& t, const char* name, const char* op) {
   TORCH_CHECK(t.dim() == 2 && t.size(1) == 3, op, ": ", name, " must be (N, 3), got ", t.sizes());
 }
 
+// exclude_self means "x is y": the queries are then the grid's own points (read in grid order)
+void check_self(const Tensor& x, const Tensor& y, bool exclude_self, const char* op) {
+  TORCH_CHECK(!exclude_self || (x.data_ptr() == y.data_ptr() && x.sizes() == y.sizes()), op,
+              ": exclude_self needs x and y to be the same tensor (neighbours of a set among itself)");
+}
+
 void check_csr(const Tensor& rowptr, const Tensor& col, int64_t rows, const char* name, const char* op) {
   TORCH_CHECK(rowptr.scalar_type() == torch::kInt64 && col.scalar_type() == torch::kInt64, op, ": ", name,
               " must be int64");
@@ -155,6 +161,7 @@ std::vector<Tensor> radius_pairs(Tensor x, Tensor y, std::vector<Tensor> grid, d
   check_points(x, "x", "radius_pairs");
   check_points(y, "y", "radius_pairs");
   TORCH_CHECK(radius > 0 && std::isfinite(radius), "radius_pairs: radius must be positive and finite, got ", radius);
+  check_self(x.contiguous(), y.contiguous(), exclude_self, "radius_pairs");
   return gf::radius_pairs_cpu(x, y, grid, radius, exclude_self);
 }
 
@@ -174,8 +181,8 @@ std::vector<Tensor> dfsph_neighbourhood(Tensor x, Tensor wall, Tensor rowptr, Te
 }
 
 std::vector<Tensor> dfsph_solve(Tensor v, Tensor kappa0, Tensor rowptr, Tensor col, Tensor browptr, Tensor bcol,
-                                std::vector<Tensor> nb, int64_t mode, double dt, double scale, double tol,
-                                int64_t min_iters, int64_t max_iters) {
+                                std::vector<Tensor> nb, int64_t mode, int64_t min_count, double dt, double scale,
+                                double tol, int64_t min_iters, int64_t max_iters) {
   const char* op = "dfsph_solve";
   TORCH_CHECK(nb.size() == 10, op, ": nb must be what dfsph_neighbourhood returned");
   check_same({{"v", &v}, {"gw", &nb[1]}, {"gwb", &nb[3]}, {"rho_all", &nb[4]}, {"alpha", &nb[5]}}, op);
@@ -186,7 +193,8 @@ std::vector<Tensor> dfsph_solve(Tensor v, Tensor kappa0, Tensor rowptr, Tensor c
               " particles");
   TORCH_CHECK(mode == 0 || mode == 1, op, ": mode must be 0 (density) or 1 (divergence)");
   TORCH_CHECK(dt > 0 && scale > 0 && max_iters >= 1, op, ": dt, scale and max_iters must be positive");
-  return gf::dfsph_solve_cpu(v, kappa0, rowptr, col, browptr, bcol, nb, mode, dt, scale, tol, min_iters, max_iters);
+  return gf::dfsph_solve_cpu(v, kappa0, rowptr, col, browptr, bcol, nb, mode, min_count, dt, scale, tol, min_iters,
+                             max_iters);
 }
 
 std::vector<Tensor> pbf_iteration(Tensor x, Tensor wall, Tensor rowptr, Tensor col, Tensor browptr, Tensor bcol,
@@ -223,6 +231,7 @@ Tensor kernel_sum(Tensor x, Tensor y, std::vector<Tensor> grid, double h, int64_
   check_points(y, "y", "kernel_sum");
   TORCH_CHECK(h > 0 && std::isfinite(h), "kernel_sum: h must be positive and finite, got ", h);
   TORCH_CHECK(kernel >= 0 && kernel <= 2, "kernel_sum: kernel must be 0 (cubic), 1 (Wendland) or 2 (poly6)");
+  check_self(x.contiguous(), y.contiguous(), exclude_self, "kernel_sum");
   return gf::kernel_sum_cpu(x, y, grid, h, kernel, exclude_self);
 }
 

@@ -67,8 +67,8 @@ std::vector<torch::Tensor> dfsph_neighbourhood_cpu(torch::Tensor x, torch::Tenso
                                                    double h, double wall_alpha_cap);
 std::vector<torch::Tensor> dfsph_solve_cpu(torch::Tensor v, torch::Tensor kappa0, torch::Tensor rowptr,
                                            torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol,
-                                           std::vector<torch::Tensor> nb, int64_t mode, double dt, double scale,
-                                           double tol, int64_t min_iters, int64_t max_iters);
+                                           std::vector<torch::Tensor> nb, int64_t mode, int64_t min_count, double dt,
+                                           double scale, double tol, int64_t min_iters, int64_t max_iters);
 std::vector<torch::Tensor> pbf_iteration_cpu(torch::Tensor x, torch::Tensor wall, torch::Tensor rowptr,
                                              torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol, double V,
                                              double h, double eps, double scorr_k, double scorr_n, double w_dq,

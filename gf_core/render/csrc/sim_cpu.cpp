@@ -496,8 +496,9 @@ namespace {
 // on a busy machine or with OMP_WAIT_POLICY=PASSIVE.
 template <typename S>
 void solve_impl(torch::Tensor& v, double* kappa, const std::vector<torch::Tensor>& nb, const int64_t* rp,
-                const int64_t* cj, const int64_t* brp, const int64_t* bc, int64_t n, int64_t m, int64_t mode, double dt,
-                double scale, double tol, int64_t min_iters, int64_t max_iters, double* out) {
+                const int64_t* cj, const int64_t* brp, const int64_t* bc, int64_t n, int64_t m, int64_t mode,
+                int64_t min_count, double dt, double scale, double tol, int64_t min_iters, int64_t max_iters,
+                double* out) {
   const DfsphOps<S> ops{n, m - n, rp, cj, brp, bc, nb[7].data_ptr<int64_t>(), nb[8].data_ptr<int64_t>(),
                         nb[9].data_ptr<int64_t>(), nb[1].data_ptr<S>(), nb[3].data_ptr<S>()};
   S* pv = v.data_ptr<S>();
@@ -523,7 +524,7 @@ void solve_impl(torch::Tensor& v, double* kappa, const std::vector<torch::Tensor
       double esum = 0;
       for (int64_t k = k0; k < k1; ++k) {
         const double d = ops.div(pv, k);
-        const double r = mode == 0 ? (double)rho[k] + dt * d - 1.0 : (count[k] >= 20 ? d * dt : 0.0);
+        const double r = mode == 0 ? (double)rho[k] + dt * d - 1.0 : (count[k] >= min_count ? d * dt : 0.0);
         res[k] = r;
         esum += r > 0 ? r : 0.0;
       }
@@ -577,21 +578,21 @@ void xsph_impl(const S* pv, const int64_t* rp, const int64_t* cj, const S* pw, d
 
 // The Jacobi solve of dfsph.py `_solve` (Bender & Koschier 2017, Alg. 2/3), the whole loop here:
 // residual_k = rho_all_k + dt div_k(v) - 1 (mode 0, constant density) or dt div_k(v) where
-// count_k >= 20, else 0 (mode 1, divergence free); kappa_k += omega max(residual_k, 0) alpha_k / scale;
+// count_k >= min_count, else 0 (mode 1, divergence free); kappa_k += omega max(residual_k, 0) alpha_k / scale;
 // an update after which the error more than doubles (or turns NaN) is taken back and redone with
 // half the relaxation. v (n, 3) is updated in place; kappa (n + nw) is the warm start.
 // Returns {kappa, [iterations, error, halvings] (float64)}.
 std::vector<torch::Tensor> dfsph_solve_cpu(torch::Tensor v, torch::Tensor kappa0, torch::Tensor rowptr,
                                            torch::Tensor col, torch::Tensor browptr, torch::Tensor bcol,
-                                           std::vector<torch::Tensor> nb, int64_t mode, double dt, double scale,
-                                           double tol, int64_t min_iters, int64_t max_iters) {
+                                           std::vector<torch::Tensor> nb, int64_t mode, int64_t min_count, double dt,
+                                           double scale, double tol, int64_t min_iters, int64_t max_iters) {
   TORCH_CHECK(v.is_contiguous(), "dfsph_solve: v must be contiguous (it is updated in place)");
   const int64_t n = v.size(0), m = nb[5].size(0);
   auto kappa_t = kappa0.to(torch::kFloat64).contiguous().clone();
   auto info = torch::zeros({3}, torch::TensorOptions().dtype(torch::kFloat64));
   AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "dfsph_solve_cpu", [&] {
     solve_impl<scalar_t>(v, kappa_t.data_ptr<double>(), nb, rowptr.data_ptr<int64_t>(), col.data_ptr<int64_t>(),
-                         browptr.data_ptr<int64_t>(), bcol.data_ptr<int64_t>(), n, m, mode, dt, scale, tol, min_iters,
+                         browptr.data_ptr<int64_t>(), bcol.data_ptr<int64_t>(), n, m, mode, min_count, dt, scale, tol, min_iters,
                          max_iters, info.data_ptr<double>());
   });
   return {kappa_t.to(v.scalar_type()), info};
