@@ -4,6 +4,8 @@ Same function as ``gf_core.temporal.Decoder`` (a test holds the two equal to 1e-
 
     A^t = A^0 + (tau - tau0) * Phi(theta, gamma(tau))                                   (Eq. 4)
 
+plus, when the reconstruction has them, the residuals R(tau) - R(tau0) (linear between knots).
+
 with gamma(tau) = [tau, sin(2^k pi tau), cos(2^k pi tau)], k = 0..L-1, and Phi an MLP with ReLU
 between its layers. Float32, vectorised over particles: the first layer's theta part,
 theta @ W_theta^T, does not depend on time and is computed once per reconstruction; each time then
@@ -100,6 +102,24 @@ class NumpyDecoder:
         self.layers = [(np.ascontiguousarray(np.asarray(w, np.float32).T), np.asarray(b, np.float32))
                        for w, b in data.layers[1:]]
         self.block = int(block)
+        # optional residuals (recon.h5 version 2): R at the knots, linear in tau between them, so that
+        # Delta A = (tau - tau0) Phi + R(tau) - R(tau0)
+        self.residuals = None if getattr(data, "residuals", None) is None else \
+            np.ascontiguousarray(data.residuals, np.float32)
+        self.knots = None if self.residuals is None else np.asarray(data.residual_knots, np.float64)
+        if self.residuals is not None:
+            self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
+
+    def _residual(self, tau: float):
+        """R(tau) (N, k) and dR/dtau (N, k); constant (slope 0) outside the knots."""
+        k = self.knots
+        tc = min(max(tau, k[0]), k[-1])
+        j = int(np.clip(np.searchsorted(k, tc, side="right") - 1, 0, len(k) - 2))
+        span = k[j + 1] - k[j]
+        w = np.float32((tc - k[j]) / span)
+        a, b = self.residuals[:, j], self.residuals[:, j + 1]
+        slope = (b - a) * np.float32(1.0 / span) if k[0] <= tau <= k[-1] else np.zeros_like(a)
+        return a + w * (b - a), slope
 
     @property
     def num_particles(self) -> int:
@@ -141,6 +161,11 @@ class NumpyDecoder:
                     h += b
             out[s:s + m] = h
         out *= scale
+        if self.residuals is not None:
+            r, slope = self._residual(tau)
+            out += r - self._residual(self.canonical_time)[0]
+            if with_velocity:
+                vel += slope[:, :3]
         res, k = {}, 0
         for name, w in OUTPUTS.items():
             res[name] = out[:, k:k + w]

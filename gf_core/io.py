@@ -21,7 +21,9 @@ import numpy as np
 from .errors import FormatError, InputError
 
 SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
-RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 1
+# version 2 adds the optional decoder residuals; a file without them is written as version 1
+RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 2
+RECON_VERSIONS_READ = (1, 2)
 
 
 # ---- helpers -------------------------------------------------------------------------------------
@@ -85,10 +87,11 @@ def _open_checked(path, fmt: str, version: int):
         f.close()
         raise FormatError(path, f"expected format {fmt!r}, found {got_fmt!r}")
     got_ver = int(f.attrs.get("version", -1))
-    if got_ver != version:
+    versions = version if isinstance(version, tuple) else (version,)
+    if got_ver not in versions:
         f.close()
         raise FormatError(path, f"{fmt} version {got_ver} is not supported (this toolkit reads "
-                                f"version {version})")
+                                f"version {' and '.join(map(str, versions))})")
     return f
 
 
@@ -378,6 +381,8 @@ class DecoderData:
     encoding: dict
     outputs: dict
     activation: str = "relu"
+    residuals: np.ndarray | None = None       # (N, F, sum(outputs)): pose corrections at the knots (version 2)
+    residual_knots: np.ndarray | None = None  # (F,) increasing tau of the knots
 
 
 @dataclass
@@ -439,6 +444,17 @@ def _check_recon(r: ReconData, where) -> None:
             width = w.shape[0]
         if width != sum(d.outputs.values()):
             raise FormatError(where, f"decoder output width {width} != sum of outputs {d.outputs}")
+        if (d.residuals is None) != (d.residual_knots is None):
+            raise FormatError(where, "decoder residuals and residual_knots come together")
+        if d.residuals is not None:
+            kn = np.asarray(d.residual_knots)
+            if kn.ndim != 1 or kn.size < 2 or not np.all(np.diff(kn) > 0) or not np.all(np.isfinite(kn)):
+                raise FormatError(where, f"decoder residual_knots must be >= 2 increasing finite values, got {kn}")
+            if np.shape(d.residuals) != (n, kn.size, width):
+                raise FormatError(where, f"decoder residuals must have shape ({n}, {kn.size}, {width}), "
+                                         f"got {np.shape(d.residuals)}")
+            if not np.all(np.isfinite(d.residuals)):
+                raise FormatError(where, "decoder residuals contain NaN or infinite values")
     for name in ("means", "log_scales", "quats", "logit_opacity", "sh"):
         if not np.all(np.isfinite(getattr(r, name))):
             raise FormatError(where, f"{name} contains NaN or infinite values")
@@ -451,7 +467,8 @@ def write_recon(path, r: ReconData) -> Path:
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as f:
             f.attrs["format"] = RECON_FORMAT
-            f.attrs["version"] = RECON_VERSION
+            has_res = r.decoder is not None and r.decoder.residuals is not None
+            f.attrs["version"] = RECON_VERSION if has_res else 1
             f.attrs["time_min"] = float(r.time_min)
             f.attrs["time_max"] = float(r.time_max)
             f.attrs["config"] = json.dumps(r.config)
@@ -471,11 +488,14 @@ def write_recon(path, r: ReconData) -> Path:
                 for i, (w, b) in enumerate(r.decoder.layers):
                     d.create_dataset(f"layer{i}/weight", data=np.asarray(w, np.float32))
                     d.create_dataset(f"layer{i}/bias", data=np.asarray(b, np.float32))
+                if has_res:
+                    d.create_dataset("residuals", data=np.asarray(r.decoder.residuals, np.float32))
+                    d.create_dataset("residual_knots", data=np.asarray(r.decoder.residual_knots, np.float64))
     return path
 
 
 def read_recon(path) -> ReconData:
-    with _open_checked(path, RECON_FORMAT, RECON_VERSION) as f:
+    with _open_checked(path, RECON_FORMAT, RECON_VERSIONS_READ) as f:
         if "canonical" not in f:
             raise FormatError(path, "missing group 'canonical'")
         g = f["canonical"]
@@ -491,6 +511,9 @@ def read_recon(path) -> ReconData:
                                   encoding=_json_attr(d, "encoding", path),
                                   outputs=_json_attr(d, "outputs", path),
                                   activation=_attr(d, "activation", path, str))
+            if "residuals" in d:
+                decoder.residuals = _read(d, "residuals", path, ndim=3)
+                decoder.residual_knots = _read(d, "residual_knots", path, ndim=1, dtype=np.float64)
         r = ReconData(**arrays, time_min=_attr(f, "time_min", path),
                       time_max=_attr(f, "time_max", path), decoder=decoder,
                       config=_json_attr(f, "config", path), metrics=_json_attr(f, "metrics", path))

@@ -20,7 +20,7 @@ from torch import nn
 from .errors import InputError
 from .io import ReconData
 from .render.constants import SH_C0
-from .temporal import Decoder, DecoderConfig, TimeMap, apply_delta
+from .temporal import RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
 
 PER_PARTICLE = ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest")
 
@@ -69,7 +69,7 @@ class FluidModel(nn.Module):
     @classmethod
     def from_points(cls, points: torch.Tensor, *, radius: float, color, opacity: float, sh_degree: int,
                     channels: int, bounds: Bounds, time_map: TimeMap, decoder_cfg: DecoderConfig | None,
-                    seed: int = 0) -> "FluidModel":
+                    knots=None, seed: int = 0) -> "FluidModel":
         n = points.shape[0]
         if n < 1:
             raise InputError("reconstruct", "no particles to start from")
@@ -83,7 +83,7 @@ class FluidModel(nn.Module):
         dec = None
         if decoder_cfg is not None:
             torch.manual_seed(seed)
-            dec = Decoder(n, decoder_cfg, dtype=dt, device=dev)
+            dec = Decoder(n, decoder_cfg, knots=knots, dtype=dt, device=dev)
         return cls(points.clone(), torch.full((n, 3), math.log(radius), dtype=dt, device=dev), quats,
                    torch.full((n,), logit, dtype=dt, device=dev), sh, bounds=bounds, time_map=time_map,
                    decoder=dec)
@@ -108,9 +108,12 @@ class FluidModel(nn.Module):
         out = {k: getattr(self, k) for k in PER_PARTICLE}
         if self.decoder is not None:
             out["features"] = self.decoder.features
+            out.update(self.decoder.residuals())
         return out
 
     def set_per_particle(self, name: str, value: torch.Tensor) -> nn.Parameter:
+        if name.startswith(RESIDUAL_PREFIX):
+            return self.decoder.set_residual(name, value)
         p = nn.Parameter(value.detach().clone())
         if name == "features":
             self.decoder.features = p
@@ -130,19 +133,29 @@ class FluidModel(nn.Module):
     def at(self, t: float | None = None, *, with_velocity: bool = False, use_decoder: bool = True) -> dict:
         """Renderer inputs at time ``t`` (seconds; None or a static model: the canonical particles):
         means, scales, quats, opacities, sh; with ``with_velocity`` also velocities (m/s)."""
+        return self.at_many([t], with_velocity=with_velocity, use_decoder=use_decoder)[0]
+
+    def at_many(self, times, *, with_velocity: bool = False, use_decoder: bool = True) -> list[dict]:
+        """``at`` for several times, decoded in one pass through the MLP."""
         raw = {"means": self.means, "log_scales": self.log_scales, "quats": self.quats}
-        vel = None
-        if self.decoder is not None and use_decoder and t is not None:
-            tau = self.time_map.tau(t)
-            delta = self.decoder(tau, with_velocity=with_velocity)
-            raw = apply_delta(raw, delta)
+        decode = self.decoder is not None and use_decoder and all(t is not None for t in times)
+        delta = None
+        if decode:
+            delta = self.decoder.forward_many([self.time_map.tau(t) for t in times], with_velocity=with_velocity)
+        opacities, sh = torch.sigmoid(self.logit_opacity), self.sh()  # the same at every time
+        out = []
+        for k in range(len(times)):
+            r, vel = raw, None
+            if delta is not None:
+                r = apply_delta(raw, {name: v[k] for name, v in delta.items()})
+                if with_velocity:
+                    vel = delta["vp"][k] / max(self.time_map.duration, 1e-12)
+            means, log_scales = self._bounded(r["means"], r["log_scales"])
+            p = {"means": means, "scales": torch.exp(log_scales), "quats": r["quats"],
+                 "opacities": opacities, "sh": sh}
             if with_velocity:
-                vel = delta["vp"] / max(self.time_map.duration, 1e-12)
-        means, log_scales = self._bounded(raw["means"], raw["log_scales"])
-        out = {"means": means, "scales": torch.exp(log_scales), "quats": raw["quats"],
-               "opacities": torch.sigmoid(self.logit_opacity), "sh": self.sh()}
-        if with_velocity:
-            out["velocities"] = torch.zeros_like(means) if vel is None else vel
+                p["velocities"] = torch.zeros_like(means) if vel is None else vel
+            out.append(p)
         return out
 
     @torch.no_grad()

@@ -66,6 +66,7 @@ class LRConfig:
     features: float = 1e-2         # theta (paper: 1e-2)
     mlp: float = 1e-4              # Phi (paper: 1e-4)
     canonical_dynamic: float = 0.1  # factor on the canonical particles' rates in phases 2 and 3
+    residuals: float = 1.0         # decoder residuals (decoder.residuals): factor on the means/log_scales/quats rates
 
 
 @dataclass
@@ -78,6 +79,8 @@ class PhaseConfig:
     phase1_reg: float = 0.1        # lambda_a, lambda_v in phase 1 as a fraction of the final ones
     phase2_density: float = 0.1    # lambda_d reaches this fraction by the end of phase 2
     time_curriculum: float = 0.5   # phase 2 samples times near the canonical one, widening to the clip over this fraction
+    error_sampling: float = 0.0    # share of the time draws made in proportion to each frame's recent image error
+    residuals_from: int = 3        # the phase (2 or 3) from which the decoder residuals are trained
 
 
 @dataclass
@@ -151,6 +154,10 @@ class ReconConfig:
             raise InputError(where, "train.times_per_step must be >= 1 and train.views_per_step >= 0")
         if not 0 <= ph.time_curriculum <= 1:
             raise InputError(where, f"phases.time_curriculum must be in [0, 1], got {ph.time_curriculum}")
+        if ph.residuals_from not in (2, 3):
+            raise InputError(where, f"phases.residuals_from must be 2 or 3, got {ph.residuals_from}")
+        if not 0 <= ph.error_sampling <= 1:
+            raise InputError(where, f"phases.error_sampling must be in [0, 1], got {ph.error_sampling}")
         if self.train.log_every < 1 or self.train.checkpoint_every < 1 or self.train.eval_every < 1:
             raise InputError(where, "train.log_every, eval_every and checkpoint_every must be >= 1")
         self.decoder.validate()

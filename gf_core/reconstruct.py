@@ -32,7 +32,14 @@ distance, which large motions need (measured in BENCHMARKS.md, "Reconstruction")
 
 Coarse to fine in time and space (phase 2): the times drawn widen from the canonical one to the
 whole clip over ``phases.time_curriculum`` of the phase, and the L1 term compares images blurred
-with a Gaussian of ``loss.blur_start`` x width that shrinks to none as the window widens.
+with a Gaussian of ``loss.blur_start`` x width that shrinks to none as the window widens. Once the
+window is the whole clip, ``phases.error_sampling`` of the draws pick frames in proportion to their
+smoothed image error (the splash after an impact is harder than the free fall before it).
+
+Decoder residuals (``decoder.residuals``, not in the paper; ``gf_core/temporal.py``): per-particle
+pose corrections at the training frames, trained from phase ``phases.residuals_from`` at the rates
+of the canonical means (undecayed), log-scales and quaternions times ``lr.residuals``. They give
+each frame's particles a direct path to the images that the shared MLP gives only slowly.
 
 Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
 grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
@@ -221,6 +228,7 @@ class Trainer:
         self.bad_steps = 0
         self.total_bad_steps = 0
         self.nbr_cache: dict = {}
+        self.frame_err = np.full(len(times), np.nan)  # smoothed image MSE per training frame
         self.version = 0
         self.model = None
         self.opt = None
@@ -252,12 +260,19 @@ class Trainer:
         self.model = FluidModel.from_points(
             torch.as_tensor(pts, dtype=torch.float32, device=self.device), radius=mc.init_scale * self.spacing,
             color=color, opacity=mc.init_opacity, sh_degree=mc.sh_degree, channels=self.channels, bounds=bounds,
-            time_map=self.time_map, decoder_cfg=None if self.static else cfg.decoder, seed=cfg.train.seed)
+            time_map=self.time_map, decoder_cfg=None if self.static else cfg.decoder, knots=self.knots(),
+            seed=cfg.train.seed)
         self._make_optimizer()
         self.log(f"start: {len(self.model)} particles ({self.init_source}) in the scene box from {src} "
                  f"{np.round(lo, 3).tolist()}..{np.round(hi, 3).tolist()}; fluid volume {volume:.3g} m^3, "
                  f"spacing {self.spacing:.4g} m, h = {self.h:.4g} m; "
                  f"{'static scene (no decoder)' if self.static else f'{len(self.train.unique_times)} times'}")
+
+    def knots(self) -> list[float] | None:
+        """The decoder residuals' knots: the training frames' tau (None without residuals)."""
+        if self.static or not self.cfg.decoder.residuals:
+            return None
+        return [self.time_map.tau(t) for t in self.train.unique_times]
 
     def _make_optimizer(self) -> None:
         lr = self.cfg.lr
@@ -265,6 +280,9 @@ class Trainer:
                "logit_opacity": lr.logit_opacity, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
         if self.model.decoder is not None:
             lrs["features"] = lr.features
+            for name in self.model.decoder.residuals():  # residual_dp/ds/dr at the rates of means/log_scales/quats
+                base = {"dp": "means", "ds": "log_scales", "dr": "quats"}[name[len("residual_"):]]
+                lrs[name] = lr.residuals * lrs[base]
         self.base_lrs = lrs
         self.opt = ParticleOptimizer(self.model, lrs, mlp_lr=lr.mlp)
         dc = self.cfg.densify
@@ -324,8 +342,30 @@ class Trainer:
         tau0 = self.cfg.decoder.canonical_time
         width = max(self.window_width(phase_progress), 2.0 / max(len(times) - 1, 1))
         pool = np.nonzero(np.abs(tau - tau0) <= width + 1e-9)[0]
-        pick = self.np_rng.choice(pool, size=self.cfg.train.times_per_step, replace=True)
+        share = self.cfg.phases.error_sampling
+        if share > 0 and len(pool) == len(times) and np.all(np.isfinite(self.frame_err)):
+            # the hard frames (the splash) more often: a mixture of uniform and error-proportional draws
+            err = np.maximum(self.frame_err, 1e-12)
+            prob = (1 - share) / len(times) + share * err / err.sum()
+            pick = self.np_rng.choice(len(times), size=self.cfg.train.times_per_step, replace=True, p=prob)
+        else:
+            pick = self.np_rng.choice(pool, size=self.cfg.train.times_per_step, replace=True)
         return [float(times[k]) for k in pick]
+
+    FRAME_ERR_SMOOTHING = 0.2  # weight of the newest value in each frame's smoothed image error
+
+    def _note_frame_errors(self, per_time, mses) -> None:
+        """Smoothed mean squared image error of each training frame (for ``phases.error_sampling``)."""
+        times = self.train.unique_times
+        k = 0
+        for t, idx in per_time:
+            if not idx:
+                continue
+            m = float(np.mean(mses[k:k + len(idx)]))
+            k += len(idx)
+            f = int(np.argmin(np.abs(times - t)))
+            a = self.FRAME_ERR_SMOOTHING
+            self.frame_err[f] = m if not np.isfinite(self.frame_err[f]) else (1 - a) * self.frame_err[f] + a * m
 
     def _set_lrs(self, run_progress: float) -> None:
         decay = self.cfg.lr.means_final ** run_progress
@@ -333,6 +373,9 @@ class Trainer:
         for name, lr in self.base_lrs.items():
             if name == "features":
                 self.opt.set_lr(name, lr if self.phase > 1 else 0.0)
+            elif name.startswith("residual_"):
+                on = self.phase >= self.cfg.phases.residuals_from
+                self.opt.set_lr(name, lr if on else 0.0)  # no decay: each frame gets a few hundred steps
             else:
                 self.opt.set_lr(name, lr * f * (decay if name == "means" else 1.0))
         if self.model.decoder is not None:
@@ -411,8 +454,9 @@ class Trainer:
                 idx = [idx[i] for i in self.np_rng.choice(len(idx), k, replace=False)]
             per_time.append((t, idx))
             n_img += len(idx)
-        for t, idx in per_time:
-            p = self.model.at(t if use_dec else None)
+        decoded = self.model.at_many([t if use_dec else None for t, _ in per_time]) if use_dec else \
+            [self.model.at(None)] * len(per_time)
+        for (t, idx), p in zip(per_time, decoded):
             if use_dec and w["motion"] > 0:
                 moved.append((self.time_map.tau(float(t)), p["means"]))
             for i in idx:
@@ -483,6 +527,8 @@ class Trainer:
                                           f"{self.out / CHECKPOINT}")
         term_vals = dict(zip(terms, vals[1:1 + len(terms)]))
         psnrs = [-10 * math.log10(m) if m > 0 else 99.0 for m in vals[1 + len(terms):]]
+        if ok and use_dec:
+            self._note_frame_errors(per_time, vals[1 + len(terms):])
         return {"terms": term_vals, "weights": w, "loss": sum(term_vals.values()), "train_psnr": float(np.mean(psnrs)),
                 "t": times[0], "finite": ok}
 
@@ -527,7 +573,7 @@ class Trainer:
                 "mlp": None if m.decoder is None else {k: v.cpu() for k, v in m.decoder.layers.state_dict().items()},
                 "optimizer": self.opt.state_dict(), "plateau": self.plateau.state(),
                 "rng_torch": self.gen.get_state(), "rng_numpy": json.dumps(self.np_rng.bit_generator.state),
-                "total_bad_steps": self.total_bad_steps}
+                "total_bad_steps": self.total_bad_steps, "frame_err": self.frame_err.tolist()}
 
     def save_checkpoint(self) -> Path:
         # neighbour lists are not stored: drop them here too, so that a resumed run rebuilds them
@@ -560,9 +606,11 @@ class Trainer:
         sh = torch.cat([P["sh_dc"], P["sh_rest"]], 1)
         dec = None
         if st["mlp"] is not None:
-            dec = Decoder(P["means"].shape[0], self.cfg.decoder, device=self.device)
+            dec = Decoder(P["means"].shape[0], self.cfg.decoder, knots=self.knots(), device=self.device)
             dec.layers.load_state_dict(st["mlp"])
             dec.features = torch.nn.Parameter(P["features"])
+            for name in dec.residuals():
+                dec.set_residual(name, P[name])
         self.model = FluidModel(P["means"], P["log_scales"], P["quats"], P["logit_opacity"], sh, bounds=bounds,
                                 time_map=self.time_map, decoder=dec)
         self.spacing, self.h, self.volume = st["spacing"], st["h"], st["volume"]
@@ -573,6 +621,8 @@ class Trainer:
         self.elapsed = st["elapsed"]
         self.phase_t0 = st.get("phase_t0", 0.0)
         self.total_bad_steps = st.get("total_bad_steps", 0)
+        if "frame_err" in st:
+            self.frame_err = np.asarray(st["frame_err"], np.float64)
         self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
         self.plateau.load(st["plateau"])
         self.gen.set_state(st["rng_torch"])

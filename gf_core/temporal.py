@@ -15,6 +15,14 @@ Velocities dp/dt come from forward-mode differentiation of the same MLP along ta
 pass with the ReLU masks of the forward pass), not from finite differences:
     d(Delta p)/dtau = Phi_p + (tau - tau0) dPhi_p/dtau,   dp/dt = d(Delta p)/dtau / (t_max - t_min).
 
+Optional residuals (``DecoderConfig.residuals``, not in the paper): per-particle corrections R_i
+at knots (the training frames' tau), linear in tau between them and constant outside,
+
+    Delta A^t = (tau - tau0) * Phi(theta, gamma(tau)) + R(tau) - R(tau0),
+
+still exactly A^0 at tau0 and continuous in time; their velocity is the slope between knots. All
+T times of a training step go through the MLP as one batch (``forward_many``).
+
 The numpy twin in ``gf_core/decoder_np.py`` (used by the Blender extension, which has no torch)
 evaluates the same function; a test holds the two equal.
 """
@@ -24,12 +32,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
 # TimeMap (seconds <-> tau) and the output layout are shared with the numpy twin, which needs no torch
 from .decoder_np import OUTPUTS, TimeMap
 from .errors import InputError
+
+RESIDUAL_PREFIX = "residual_"  # the residuals' parameter names: residual_dp, residual_ds, residual_dr
 
 
 @dataclass
@@ -40,6 +51,7 @@ class DecoderConfig:
     n_freqs: int = 6             # L of gamma(tau)
     include_input: bool = True   # tau itself in gamma(tau)
     canonical_time: float = 0.0  # tau0 in [0, 1]
+    residuals: bool = False      # per-particle pose corrections at the training frames (not in the paper)
 
     def validate(self) -> "DecoderConfig":
         for k in ("feature_dim", "hidden_layers", "hidden_width"):
@@ -80,11 +92,25 @@ class Decoder(nn.Module):
     encoding is multiplied once per time, not once per particle.
     """
 
-    def __init__(self, num_particles: int, cfg: DecoderConfig | None = None, *, dtype=torch.float32,
+    def __init__(self, num_particles: int, cfg: DecoderConfig | None = None, *, knots=None, dtype=torch.float32,
                  device=None):
         super().__init__()
         self.cfg = (cfg or DecoderConfig()).validate()
         c = self.cfg
+        # residuals (cfg.residuals): R (N, F, k) per output at the F knots (the training frames' tau),
+        # linear in tau between them: Delta A^t = (tau - tau0) Phi + R(tau) - R(tau0)
+        self.register_buffer("knots", None, persistent=False)
+        self.register_buffer("knot_free", None, persistent=False)
+        if c.residuals:
+            kn = torch.as_tensor(knots if knots is not None else [], dtype=torch.float64)
+            if kn.ndim != 1 or kn.numel() < 2 or not bool((kn[1:] > kn[:-1]).all()):
+                raise InputError("decoder config", "residuals need at least 2 increasing knots (the frames' tau)")
+            self.knots = kn.to(dtype=dtype, device=device)
+            # R is 0 at the canonical frame's knot (it would only shift every other frame)
+            self.knot_free = ((self.knots - c.canonical_time).abs() > 1e-6).to(dtype)
+            for name, width in OUTPUTS.items():
+                setattr(self, RESIDUAL_PREFIX + name,
+                        nn.Parameter(torch.zeros(num_particles, kn.numel(), width, dtype=dtype, device=device)))
         # theta starts at zero (paper: "both are initialised to zero"); the hidden layers get the
         # default init so that gradients reach theta once the last layer moves away from zero.
         self.features = nn.Parameter(torch.zeros(num_particles, c.feature_dim, dtype=dtype, device=device))
@@ -102,6 +128,25 @@ class Decoder(nn.Module):
     def mlp_parameters(self):
         return list(self.layers.parameters())
 
+    def residuals(self) -> dict:
+        """{'residual_dp': (N, F, 3), ...} (empty without residuals)."""
+        return {} if self.knots is None else {RESIDUAL_PREFIX + n: getattr(self, RESIDUAL_PREFIX + n) for n in OUTPUTS}
+
+    def _residual_at(self, tau_t: torch.Tensor, name: str):
+        """R(tau) (T, N, k) and dR/dtau (T, N, k) of output ``name``: linear between the knots,
+        constant outside them."""
+        k = self.knots
+        r = getattr(self, RESIDUAL_PREFIX + name) * self.knot_free[None, :, None]
+        tc = tau_t.clamp(k[0], k[-1])
+        j = (torch.searchsorted(k, tc.detach(), right=True) - 1).clamp(0, k.numel() - 2)
+        span = k[j + 1] - k[j]
+        w = ((tc - k[j]) / span)[None, :, None]
+        a, b = r[:, j], r[:, j + 1]
+        val = (a + w * (b - a)).transpose(0, 1)
+        inside = ((tau_t >= k[0]) & (tau_t <= k[-1])).to(r.dtype)
+        slope = ((b - a) / span[None, :, None] * inside[None, :, None]).transpose(0, 1)
+        return val, slope
+
     def _first_layer(self, features, gamma):
         w = self.layers[0].weight
         nf = self.cfg.feature_dim
@@ -111,28 +156,46 @@ class Decoder(nn.Module):
                 with_velocity: bool = False):
         """Delta A at normalised time ``tau`` for every particle: dict dp (N, 3), ds (N, 3),
         dr (N, 4); with ``with_velocity`` also 'vp' = d(Delta p)/dtau (N, 3)."""
+        return {k: v[0] for k, v in self.forward_many([tau], features=features, with_velocity=with_velocity).items()}
+
+    def forward_many(self, taus, *, features: torch.Tensor | None = None, with_velocity: bool = False):
+        """Delta A at T normalised times at once (one pass of (T N) rows through the MLP; the
+        features' part of the first layer is computed once): dict of (T, N, k) tensors."""
         feats = self.features if features is None else features
-        # a fill on the device, not a host-to-device copy (which would wait for the GPU)
-        tau_t = tau.to(feats.dtype).reshape(()) if isinstance(tau, torch.Tensor) else \
-            torch.full((), float(tau), dtype=feats.dtype, device=feats.device)
-        gamma, dgamma = encode_time(tau_t, self.cfg.n_freqs, self.cfg.include_input)
-        a_theta, a_gamma = self._first_layer(feats, gamma)
-        h = a_theta + a_gamma
+        n = feats.shape[0]
+        if isinstance(taus, torch.Tensor):
+            tau_t = taus.to(feats.dtype).reshape(-1)
+        else:  # a fill on the device, not a host-to-device copy (which would wait for the GPU)
+            tau_t = torch.stack([t.to(feats.dtype).reshape(()) if isinstance(t, torch.Tensor) else
+                                 torch.full((), float(t), dtype=feats.dtype, device=feats.device) for t in taus])
+        nt = tau_t.shape[0]
+        gamma, dgamma = encode_time(tau_t, self.cfg.n_freqs, self.cfg.include_input)  # (T, D)
+        a_theta, a_gamma = self._first_layer(feats, gamma)                             # (N, W), (T, W)
+        h = (a_theta[None] + a_gamma[:, None]).reshape(nt * n, -1)
         dh = None
         if with_velocity:
-            dh = (dgamma @ self.layers[0].weight[:, self.cfg.feature_dim:].T).expand_as(h)
+            dh = (dgamma @ self.layers[0].weight[:, self.cfg.feature_dim:].T)[:, None].expand(nt, n, -1).reshape(nt * n, -1)
         for layer in self.layers[1:]:
             if with_velocity:
                 mask = (h > 0).to(h.dtype)
                 dh = layer(dh * mask) - layer.bias
             h = layer(torch.relu(h))
-        scale = tau_t - self.cfg.canonical_time
+        h = h.reshape(nt, n, -1)
+        if with_velocity:
+            dh = dh.reshape(nt, n, -1)
+        scale = (tau_t - self.cfg.canonical_time)[:, None, None]
+        tau0 = torch.full((1,), float(self.cfg.canonical_time), dtype=feats.dtype, device=feats.device)
         out = {}
         k = 0
         for name, width in OUTPUTS.items():
-            out[name] = scale * h[:, k:k + width]
+            out[name] = scale * h[..., k:k + width]
             if with_velocity and name == "dp":
-                out["vp"] = h[:, k:k + width] + scale * dh[:, k:k + width]
+                out["vp"] = h[..., k:k + width] + scale * dh[..., k:k + width]
+            if self.knots is not None:
+                r, dr = self._residual_at(tau_t, name)
+                out[name] = out[name] + r - self._residual_at(tau0, name)[0]
+                if with_velocity and name == "dp":
+                    out["vp"] = out["vp"] + dr
             k += width
         return out
 
@@ -140,16 +203,25 @@ class Decoder(nn.Module):
     def replace_features(self, new: torch.Tensor) -> None:
         self.features = nn.Parameter(new.detach().clone())
 
+    def set_residual(self, name: str, value: torch.Tensor) -> nn.Parameter:
+        p = nn.Parameter(value.detach().clone())
+        setattr(self, name, p)
+        return p
+
     # ---- recon.h5 ------------------------------------------------------------------------------
     def to_data(self):
         from .io import DecoderData
 
         layers = [(lyr.weight.detach().cpu().numpy(), lyr.bias.detach().cpu().numpy()) for lyr in self.layers]
         c = self.cfg
+        res = self.residuals()
         return DecoderData(features=self.features.detach().cpu().numpy(), layers=layers,
                            encoding={"n_freqs": c.n_freqs, "include_input": c.include_input,
                                      "canonical_time": c.canonical_time, "time_scaling": "tau - tau0"},
-                           outputs=dict(OUTPUTS), activation="relu")
+                           outputs=dict(OUTPUTS), activation="relu",
+                           residuals=None if not res else
+                           torch.cat([(v * self.knot_free[None, :, None]).detach() for v in res.values()], -1).cpu().numpy(),
+                           residual_knots=None if self.knots is None else self.knots.detach().cpu().numpy())
 
     @classmethod
     def from_data(cls, d, *, dtype=torch.float32, device=None) -> "Decoder":
@@ -160,16 +232,22 @@ class Decoder(nn.Module):
             raise InputError("recon.h5 decoder", f"outputs {d.outputs} differ from {OUTPUTS}")
         enc = d.encoding
         feat_dim = d.features.shape[1]
+        res = getattr(d, "residuals", None)
         cfg = DecoderConfig(feature_dim=feat_dim, hidden_layers=len(d.layers) - 1,
                             hidden_width=d.layers[0][0].shape[0], n_freqs=int(enc.get("n_freqs", 0)),
                             include_input=bool(enc.get("include_input", True)),
-                            canonical_time=float(enc.get("canonical_time", 0.0)))
+                            canonical_time=float(enc.get("canonical_time", 0.0)), residuals=res is not None)
         if d.layers[0][0].shape[1] != feat_dim + cfg.encoding_dim:
             raise InputError("recon.h5 decoder", f"first layer takes {d.layers[0][0].shape[1]} inputs; "
                                                  f"features ({feat_dim}) + encoding ({cfg.encoding_dim}) differ")
-        dec = cls(d.features.shape[0], cfg, dtype=dtype, device=device)
+        dec = cls(d.features.shape[0], cfg, knots=None if res is None else np.asarray(d.residual_knots),
+                  dtype=dtype, device=device)
         with torch.no_grad():
             dec.features.copy_(torch.as_tensor(d.features))
+            k = 0
+            for name, width in (OUTPUTS.items() if res is not None else ()):
+                getattr(dec, RESIDUAL_PREFIX + name).copy_(torch.as_tensor(np.asarray(res)[..., k:k + width]))
+                k += width
             for lyr, (w, b) in zip(dec.layers, d.layers):
                 if tuple(lyr.weight.shape) != tuple(w.shape):
                     raise InputError("recon.h5 decoder", f"layer shape {w.shape} != expected {tuple(lyr.weight.shape)}")
@@ -185,4 +263,4 @@ def apply_delta(canonical: dict, delta: dict) -> dict:
             "quats": canonical["quats"] + delta["dr"]}
 
 
-__all__ = ["Decoder", "DecoderConfig", "TimeMap", "encode_time", "apply_delta", "OUTPUTS"]
+__all__ = ["RESIDUAL_PREFIX", "Decoder", "DecoderConfig", "TimeMap", "encode_time", "apply_delta", "OUTPUTS"]

@@ -57,6 +57,71 @@ def test_velocity_is_the_time_derivative():
         assert np.sum(dv > 1e-4 * (1 + np.abs(fd).max(1))) <= 1, dv.max()
 
 
+def with_residuals(n, knots, canonical_time, seed=0):
+    torch.manual_seed(seed)
+    dec = Decoder(n, DecoderConfig(canonical_time=canonical_time, residuals=True, n_freqs=3, hidden_width=32),
+                  knots=knots)
+    with torch.no_grad():
+        dec.features.normal_(0.0, 1.0)
+        dec.layers[-1].weight.normal_(0.0, 0.02)
+        for p in dec.residuals().values():
+            p.normal_(0.0, 0.05)
+    return dec
+
+
+def test_residuals_numpy_equals_torch_exact_at_the_canonical_time_and_velocity():
+    """Decoder residuals (not in the paper): linear between the knots, zero at the canonical
+    time, the same in numpy; the velocity is the derivative (away from knots and ReLU kinks)."""
+    knots = np.linspace(0.0, 1.0, 7)
+    dec = with_residuals(300, knots, canonical_time=float(knots[2]))
+    nd = NumpyDecoder(dec.to_data())
+    dec64 = Decoder.from_data(dec.to_data(), dtype=torch.float64)
+    with torch.no_grad():
+        at0 = dec(float(knots[2]))
+    assert all(float(v.abs().max()) == 0.0 for v in at0.values())
+    for tau in (0.0, 0.05, float(knots[3]), 0.61, 1.0):
+        with torch.no_grad():
+            ref = dec(tau, with_velocity=True)
+        got = nd(tau, with_velocity=True)
+        for k in ("dp", "ds", "dr"):
+            np.testing.assert_allclose(got[k], ref[k].numpy(), rtol=0, atol=1e-5, err_msg=f"{k} at {tau}")
+    # the residuals move the particles: without them the same decoder gives other positions
+    plain = Decoder.from_data(dec.to_data())
+    plain.knots = None
+    with torch.no_grad():
+        assert float((plain(0.61)["dp"] - dec(0.61)["dp"]).abs().max()) > 1e-3
+    for tau in (0.1, 0.55, 0.9):
+        e = 1e-7
+        with torch.no_grad():
+            fd = ((dec64(tau + e)["dp"] - dec64(tau - e)["dp"]) / (2 * e)).numpy()
+            an = dec64(tau, with_velocity=True)["vp"].numpy()
+        dv = np.abs(an - fd).max(1)
+        assert np.sum(dv > 1e-5 * (1 + np.abs(fd).max(1))) <= 1, dv.max()
+        assert np.sum(np.abs(nd(tau, with_velocity=True)["vp"] - an).max(1) > 1e-3 * (1 + np.abs(an).max(1))) <= 1
+
+
+def test_recon_with_residuals_is_version_2_and_round_trips(tmp_path):
+    import h5py
+    r = make_recon()
+    write_recon(tmp_path / "v1.h5", r)
+    with h5py.File(tmp_path / "v1.h5") as f:
+        assert int(f.attrs["version"]) == 1  # no residuals: readable by the toolkit before them
+    knots = np.linspace(0.0, 1.0, 5)
+    r.decoder = with_residuals(40, knots, 0.0).to_data()
+    write_recon(tmp_path / "v2.h5", r)
+    with h5py.File(tmp_path / "v2.h5") as f:
+        assert int(f.attrs["version"]) == 2
+    back = read_recon(tmp_path / "v2.h5")
+    np.testing.assert_array_equal(back.decoder.residuals, r.decoder.residuals)
+    np.testing.assert_array_equal(back.decoder.residual_knots, knots)
+    a = ParticleAnimation(back).at(0.3, velocity=True)
+    b = ParticleAnimation(r).at(0.3, velocity=True)
+    np.testing.assert_allclose(a["positions"], b["positions"], atol=1e-6)
+    r.decoder.residuals = r.decoder.residuals[:, :4]
+    with pytest.raises(Exception, match="residuals must have shape"):
+        write_recon(tmp_path / "bad.h5", r)
+
+
 def make_recon(n=40, static=False, t=(0.0, 0.5)):
     rng = np.random.default_rng(1)
     dec = None if static else trained_like(n).to_data()

@@ -186,6 +186,20 @@ def test_bench_reconstruct_sweeps_budgets_and_plots(blob, tmp_path):
     assert main(["bench", "reconstruct", str(blob), "--iterations", "0", "--out", str(out)]) == 2
 
 
+def test_bench_reconstruct_per_frame_fits_each_frame_alone(blob, tmp_path):
+    out = tmp_path / "pf"
+    assert main(["bench", "reconstruct", str(blob), "--per-frame", "--frames", "0:8:7", "--iterations", "60",
+                 "--particles", "200", "--out", str(out)]) == 0
+    doc = json.loads((out / "bench_reconstruct.json").read_text())
+    recs = doc["records"]
+    assert doc["per_frame"] and [round(r["time"], 4) for r in recs] == sorted(round(r["time"], 4) for r in recs)
+    assert len(recs) == 2 and recs[0]["time"] < recs[1]["time"]
+    for r in recs:  # a static fit: no decoder in its recon.h5, evaluated on that frame only
+        rr = read_recon(out / f"run_it60_n200_t{r['time']:.4f}" / "recon.h5")
+        assert rr.decoder is None and np.isfinite(r["test_psnr"]) and np.isfinite(r["chamfer"])
+    assert (out / "per_frame.png").stat().st_size > 10000
+
+
 def test_pareto_front():
     from gf_core.bench.recon_bench import pareto
 

@@ -189,9 +189,14 @@ def test_density_term_makes_the_distribution_uniform_and_fills_the_interior(blob
     assert min(covered) > 0.9, covered
 
 
-def test_resume_continues_exactly(blob, tmp_path):
-    """A run interrupted after a checkpoint and resumed ends where an uninterrupted run ends."""
-    cfg = small_config(phases={"iterations": 240}, train={"checkpoint_every": 100, "log_every": 20})
+@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True},
+                                       "phases": {"residuals_from": 2, "error_sampling": 0.5}}],
+                         ids=["paper", "residuals+error-sampling"])
+def test_resume_continues_exactly(blob, tmp_path, extra):
+    """A run interrupted after a checkpoint and resumed ends where an uninterrupted run ends
+    (with the decoder residuals and error-weighted frames: their state is in the checkpoint)."""
+    cfg = small_config(phases={"iterations": 240, **extra.get("phases", {})}, decoder=extra.get("decoder", {}),
+                       train={"checkpoint_every": 100, "log_every": 20})
     ds = load_dataset(blob)
     a = reconstruct(ds, tmp_path / "a", cfg, log=quiet)
     # b: stop after the checkpoint at iteration 100, by a time budget hit just after it
@@ -212,6 +217,9 @@ def test_resume_continues_exactly(blob, tmp_path):
     ra, rb = read_recon(tmp_path / "a" / "recon.h5"), read_recon(tmp_path / "b" / "recon.h5")
     assert a["iterations"] == b["iterations"] == 240
     assert np.allclose(ra.means, rb.means, atol=1e-5) and np.allclose(ra.decoder.features, rb.decoder.features, atol=1e-5)
+    if extra:
+        assert ra.decoder.residuals.shape == (len(ra.means), 8, 10) and np.abs(ra.decoder.residuals).max() > 0
+        assert np.allclose(ra.decoder.residuals, rb.decoder.residuals, atol=1e-5)
 
 
 def test_resume_refuses_another_dataset_or_config(blob, tmp_path):

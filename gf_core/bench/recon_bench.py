@@ -28,7 +28,11 @@ def pareto(points: list[tuple[float, float]], higher_is_better: bool) -> list[in
 
 
 def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], particles: list[int], preset: str = "water",
-                      config_file=None, device: str = "cpu", frames: slice | None = None, log=print) -> list[dict]:
+                      config_file=None, device: str = "cpu", frames: slice | None = None, per_frame: bool = False,
+                      log=print) -> list[dict]:
+    """One record per run. With ``per_frame``, every selected frame is fitted on its own (a static
+    scene: no decoder, no time model) for every budget pair: the per-frame reference that a
+    time-continuous reconstruction of the same images is measured against."""
     from ..data import load_dataset
     from ..evaluate import evaluate, read_metrics
     from ..recon_config import make_config
@@ -45,34 +49,64 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
         train = train.select_times(frames)
         test = test.with_times(train.times) if test is not None else None
     records = []
+    clips = [(None, train, test)]
+    if per_frame:
+        clips = [(float(t), train.with_times([t]), None if test is None else test.with_times([t]))
+                 for t in np.unique(train.times)]
     for n in particles:
         for it in iterations:
-            base = make_config(preset, config_file)
-            cfg = make_config(preset, config_file, {
-                "phases": {"iterations": it},
-                "model": {"max_particles": n, "init_particles": min(n, base.model.init_particles)}})
-            run = out / f"run_it{it}_n{n}"
-            for stale in ("recon.h5", "checkpoint.pt", "metrics.jsonl"):
-                (run / stale).unlink(missing_ok=True)
-            m = reconstruct(train, run, cfg, test_dataset=test, device=device, log=quiet)
-            ev = evaluate(run, dataset=train, test_dataset=test, device=device, log=quiet)
-            rec = {"iterations_budget": it, "particle_budget": n, "iterations": m["iterations"],
-                   "particles": m["particles"], "wall_s": m["wall_s"],
-                   "train_psnr": ev["train"]["psnr_mean"],
-                   "test_psnr": ev["test"]["psnr_mean"] if "test" in ev else None,
-                   "test_ssim": ev["test"]["ssim_mean"] if "test" in ev else None,
-                   "density_std": ev["density"]["std_mean"]}
-            if "particles_vs_gt" in ev:
-                pv = ev["particles_vs_gt"]
-                rec.update(gt_to_recon=pv["gt_to_recon_mean"], recon_to_gt=pv["recon_to_gt_mean"],
-                           chamfer=0.5 * (pv["gt_to_recon_mean"] + pv["recon_to_gt_mean"]))
-            curve = read_metrics(run / "metrics.jsonl")
-            rec["trace"] = [{"wall_s": c["wall_s"], "test_psnr": c["test_psnr"]} for c in curve if "test_psnr" in c]
-            records.append(rec)
-            log(f"iterations {it:>6} particles {n:>6}: {m['wall_s']:7.1f} s, held-out PSNR "
-                f"{rec['test_psnr'] if rec['test_psnr'] is not None else float('nan'):.2f} dB"
-                + (f", Chamfer {rec['gt_to_recon']:.3f} / {rec['recon_to_gt']:.3f} spacings" if "chamfer" in rec else ""))
+            for t, tr_ds, te_ds in clips:
+                base = make_config(preset, config_file)
+                cfg = make_config(preset, config_file, {
+                    "phases": {"iterations": it},
+                    "model": {"max_particles": n, "init_particles": min(n, base.model.init_particles)}})
+                run = out / (f"run_it{it}_n{n}" + ("" if t is None else f"_t{t:.4f}"))
+                for stale in ("recon.h5", "checkpoint.pt", "metrics.jsonl"):
+                    (run / stale).unlink(missing_ok=True)
+                m = reconstruct(tr_ds, run, cfg, test_dataset=te_ds, device=device, log=quiet)
+                ev = evaluate(run, dataset=tr_ds, test_dataset=te_ds, device=device, log=quiet)
+                rec = {"iterations_budget": it, "particle_budget": n, "iterations": m["iterations"],
+                       "particles": m["particles"], "wall_s": m["wall_s"],
+                       "train_psnr": ev["train"]["psnr_mean"],
+                       "test_psnr": ev["test"]["psnr_mean"] if "test" in ev else None,
+                       "test_ssim": ev["test"]["ssim_mean"] if "test" in ev else None,
+                       "density_std": ev["density"]["std_mean"]}
+                if "particles_vs_gt" in ev:
+                    pv = ev["particles_vs_gt"]
+                    rec.update(gt_to_recon=pv["gt_to_recon_mean"], recon_to_gt=pv["recon_to_gt_mean"],
+                               chamfer=0.5 * (pv["gt_to_recon_mean"] + pv["recon_to_gt_mean"]))
+                curve = read_metrics(run / "metrics.jsonl")
+                rec["trace"] = [{"wall_s": c["wall_s"], "test_psnr": c["test_psnr"]} for c in curve if "test_psnr" in c]
+                if t is not None:
+                    rec["time"] = t
+                records.append(rec)
+                log(("" if t is None else f"frame at {t:.4f} s: ") + f"iterations {it:>6} particles {n:>6}: "
+                    f"{m['wall_s']:7.1f} s, held-out PSNR "
+                    f"{rec['test_psnr'] if rec['test_psnr'] is not None else float('nan'):.2f} dB"
+                    + (f", Chamfer {rec['gt_to_recon']:.3f} / {rec['recon_to_gt']:.3f} spacings" if "chamfer" in rec else ""))
     return records
+
+
+def plot_per_frame(records: list[dict], path: Path) -> None:
+    """Held-out (else training) PSNR of the per-frame fits against the frame's time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    key = "test_psnr" if all(r["test_psnr"] is not None for r in records) else "train_psnr"
+    fig, ax = plt.subplots(figsize=(6, 3.8))
+    for n in sorted({r["particle_budget"] for r in records}):
+        for it in sorted({r["iterations_budget"] for r in records}):
+            rs = sorted((r for r in records if r["particle_budget"] == n and r["iterations_budget"] == it),
+                        key=lambda r: r["time"])
+            ax.plot([r["time"] for r in rs], [r[key] for r in rs], "o-", label=f"{it} it, {n} particles at most")
+    ax.set(xlabel="frame time (s)", ylabel=("held-out" if key == "test_psnr" else "training") + " PSNR (dB)",
+           title="each frame fitted on its own (no time model)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def plot(records: list[dict], path: Path) -> None:
@@ -109,4 +143,4 @@ def plot(records: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-__all__ = ["bench_reconstruct", "plot", "pareto"]
+__all__ = ["bench_reconstruct", "plot", "plot_per_frame", "pareto"]
