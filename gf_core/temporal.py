@@ -136,12 +136,13 @@ class Decoder(nn.Module):
         """R(tau) (T, N, k) and dR/dtau (T, N, k) of output ``name``: linear between the knots,
         constant outside them."""
         k = self.knots
-        r = getattr(self, RESIDUAL_PREFIX + name) * self.knot_free[None, :, None]
+        r, free = getattr(self, RESIDUAL_PREFIX + name), self.knot_free
         tc = tau_t.clamp(k[0], k[-1])
         j = (torch.searchsorted(k, tc.detach(), right=True) - 1).clamp(0, k.numel() - 2)
         span = k[j + 1] - k[j]
         w = ((tc - k[j]) / span)[None, :, None]
-        a, b = r[:, j], r[:, j + 1]
+        # the two knots' rows only (masked there), not the whole (N, F, k) tensor
+        a, b = r[:, j] * free[j][None, :, None], r[:, j + 1] * free[j + 1][None, :, None]
         val = (a + w * (b - a)).transpose(0, 1)
         inside = ((tau_t >= k[0]) & (tau_t <= k[-1])).to(r.dtype)
         slope = ((b - a) / span[None, :, None] * inside[None, :, None]).transpose(0, 1)
