@@ -67,6 +67,7 @@ class LRConfig:
     mlp: float = 1e-4              # Phi (paper: 1e-4)
     canonical_dynamic: float = 0.1  # factor on the canonical particles' rates in phases 2 and 3
     residuals: float = 1.0         # decoder residuals (decoder.residuals): factor on the means/log_scales/quats rates
+    residuals_beta1: float = 0.9   # Adam's momentum for the residuals (a frame's get gradients only when it is drawn)
 
 
 @dataclass
@@ -156,6 +157,8 @@ class ReconConfig:
             raise InputError(where, f"phases.time_curriculum must be in [0, 1], got {ph.time_curriculum}")
         if ph.residuals_from not in (2, 3):
             raise InputError(where, f"phases.residuals_from must be 2 or 3, got {ph.residuals_from}")
+        if not 0 <= self.lr.residuals_beta1 < 1:
+            raise InputError(where, f"lr.residuals_beta1 must be in [0, 1), got {self.lr.residuals_beta1}")
         if not 0 <= ph.error_sampling <= 1:
             raise InputError(where, f"phases.error_sampling must be in [0, 1], got {ph.error_sampling}")
         if self.train.log_every < 1 or self.train.checkpoint_every < 1 or self.train.eval_every < 1:

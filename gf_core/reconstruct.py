@@ -284,7 +284,8 @@ class Trainer:
                 base = {"dp": "means", "ds": "log_scales", "dr": "quats"}[name[len("residual_"):]]
                 lrs[name] = lr.residuals * lrs[base]
         self.base_lrs = lrs
-        self.opt = ParticleOptimizer(self.model, lrs, mlp_lr=lr.mlp)
+        betas = {name: (lr.residuals_beta1, 0.999) for name in lrs if name.startswith("residual_")}
+        self.opt = ParticleOptimizer(self.model, lrs, mlp_lr=lr.mlp, betas=betas)
         dc = self.cfg.densify
         self.strategy = DensifyPrune(start=dc.start, every=dc.every, grad_threshold=dc.grad_threshold,
                                      clone_max_scale=dc.clone_max_scale, prune_opacity=dc.prune_opacity,

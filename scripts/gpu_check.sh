@@ -10,8 +10,9 @@
 #   gf-cli simulate water_sphere --particles 10000 --fps 60 --out ws_paper.h5
 #   gf-cli render-dataset ws_paper.h5 --out data/ws_paper --views 5 --test-views 1 --resolution 400 --frames 0:60
 # Results go to $OUT (the device tool's folder) or ./gpu_out. Environment: SKIP_RENDER_BENCH=1 leaves
-# out `bench render`; RECON_BUDGET (seconds, default 150) bounds the reconstruction; RECON_ARGS
-# adds options to it (e.g. --config FILE).
+# out `bench render`; SKIP_TESTS=1 the `gpu` tests; PROFILE_STEPS=1 adds scripts/profile_steps.py
+# (where a training step's time goes) on DATASET; RECON_BUDGET (seconds, default 150) bounds the
+# reconstruction; RECON_ARGS adds options to it (e.g. --config FILE).
 set -uo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 cd "$ROOT"
@@ -41,8 +42,10 @@ fi
 stamp "building the native extension (CPU + CUDA)"
 $PY -c "from gf_core.render import native; assert native.load() is not None; print('has_cuda', native.has_cuda())" \
   2>&1 | tail -30 || { stamp "BUILD FAILED"; exit 1; }
-stamp "gpu tests"
-timeout 300 $PY -m pytest -q -m gpu -p no:cacheprovider tests/test_gpu.py 2>&1 | tee "$OUT/pytest_gpu.log" | tail -25
+if [ -z "${SKIP_TESTS:-}" ]; then
+  stamp "gpu tests"
+  timeout 300 $PY -m pytest -q -m gpu -p no:cacheprovider tests/test_gpu.py 2>&1 | tee "$OUT/pytest_gpu.log" | tail -25
+fi
 stamp "K-nearest SPH density and renderer timings"
 if [ -n "${GS_PID:-}" ]; then wait $GS_PID; tail -3 "$OUT/gsplat_build.log"; export PYTHONPATH=/tmp/gs:$PYTHONPATH; fi
 $PY -m gf_cli.main bench gpu --out "$OUT/bench_gpu.json" 2>&1 | tail -12
@@ -50,7 +53,12 @@ if [ -z "${SKIP_RENDER_BENCH:-}" ]; then
   $PY -m gf_cli.main bench render --device cuda --backends native,reference --particles 1000,50000,200000 \
     --resolutions 128,400,800 --repeats 20 --out "$OUT/bench_render_cuda.json" 2>&1 | tail -14
 fi
-if [ -d "$DATASET" ]; then
+if [ -n "${PROFILE_STEPS:-}" ] && [ -d "$DATASET" ]; then
+  stamp "training step profile on $DATASET"
+  $PY scripts/profile_steps.py "$DATASET" --device cuda ${PROFILE_ARGS:---config scripts/paper_gpu.toml} \
+    --out "$OUT/profile_steps.json" 2>&1 | grep -v "^USDT\|^ERROR:.*DeviceProperties" | tail -62
+fi
+if [ -d "$DATASET" ] && [ "$ITERS" != 0 ]; then
   stamp "paper-scale reconstruction of $DATASET"
   $PY -m gf_cli.main reconstruct "$DATASET" --out /tmp/paper_run --device cuda --iterations "$ITERS" \
     --init-particles 40000 --max-particles 50000 --time-budget "${RECON_BUDGET:-150}" ${RECON_ARGS:-} \

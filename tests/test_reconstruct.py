@@ -189,14 +189,15 @@ def test_density_term_makes_the_distribution_uniform_and_fills_the_interior(blob
     assert min(covered) > 0.9, covered
 
 
-@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True},
+@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True}, "lr": {"residuals_beta1": 0.0},
                                        "phases": {"residuals_from": 2, "error_sampling": 0.5}}],
                          ids=["paper", "residuals+error-sampling"])
 def test_resume_continues_exactly(blob, tmp_path, extra):
     """A run interrupted after a checkpoint and resumed ends where an uninterrupted run ends
-    (with the decoder residuals and error-weighted frames: their state is in the checkpoint)."""
+    (with the decoder residuals, their own Adam momentum and error-weighted frames: their state
+    is in the checkpoint)."""
     cfg = small_config(phases={"iterations": 240, **extra.get("phases", {})}, decoder=extra.get("decoder", {}),
-                       train={"checkpoint_every": 100, "log_every": 20})
+                       lr=extra.get("lr", {}), train={"checkpoint_every": 100, "log_every": 20})
     ds = load_dataset(blob)
     a = reconstruct(ds, tmp_path / "a", cfg, log=quiet)
     # b: stop after the checkpoint at iteration 100, by a time budget hit just after it
@@ -310,6 +311,9 @@ def test_config_errors_name_the_key(tmp_path):
         make_config("water", bad)
     with pytest.raises(InputError, match="unknown preset"):
         make_config("lava")
+    bad.write_text("[lr]\nresiduals_beta1 = 1.0\n")
+    with pytest.raises(InputError, match="lr.residuals_beta1 must be in"):
+        make_config("water", bad).validate()
     for preset in ("water", "honey", "smoke"):
         assert make_config(preset).validate()
 

@@ -73,6 +73,16 @@ def _check_dtypes(named: dict) -> None:
             raise InputError("render", f"{name} is on {t.device} but {first} is on {t0.device}")
 
 
+def _native_camera(camera: Camera):
+    """(viewmat, intrinsics) as the CPU float64 tensors the native ops read, made once per camera
+    (cameras are frozen) and kept on it: a render then builds no tensor for its camera."""
+    cached = camera.__dict__.get("_native_tensors")
+    if cached is None:
+        cached = camera.to_torch(device="cpu", dtype=torch.float64)
+        object.__setattr__(camera, "_native_tensors", cached)
+    return cached
+
+
 def pick_backend(backend: str, device: torch.device) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"unknown renderer backend {backend!r}; choose from {', '.join(BACKENDS)}")
@@ -133,7 +143,7 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
         tile_size = TILE_SIZE_CUDA if which == "native" and dev.type == "cuda" else TILE_SIZE
     if which != "native":  # the native projection checks every value itself, in the same pass
         _check_values(named)
-    viewmat, intr = camera.to_torch(device="cpu" if which == "native" else dev, dtype=torch.float64)
+    viewmat, intr = _native_camera(camera) if which == "native" else camera.to_torch(device=dev, dtype=torch.float64)
 
     if which == "native":
         means2d, conics, depths, colors, radii = native.ProjectFn.apply(

@@ -72,13 +72,21 @@ __global__ void project_bwd_kernel(Cam cam, int64_t N, int K, int Cc, int degree
                                    const S* __restrict__ g_depths, const S* __restrict__ g_colors, S* g_means,
                                    S* g_scales, S* g_quats, S* g_sh) {
   int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
-  if (i >= N || radii[i] <= 0) return;  // gradient buffers are zeroed
+  if (i >= N) return;
+  const int nb = sh_count(degree);
+  // the output buffers are not zeroed: every entry of this Gaussian is written here
+  for (int k = (radii[i] > 0 ? nb : 0); k < K; ++k)
+    for (int c = 0; c < Cc; ++c) g_sh[(i * K + k) * Cc + c] = 0;
+  if (radii[i] <= 0) {
+    for (int j = 0; j < 3; ++j) g_means[3 * i + j] = g_scales[3 * i + j] = 0;
+    for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = 0;
+    return;
+  }
   double p[3], s[3], q[4];
   for (int j = 0; j < 3; ++j) { p[j] = means[3 * i + j]; s[j] = scales[3 * i + j]; }
   for (int j = 0; j < 4; ++j) q[j] = quats[4 * i + j];
   Proj P;
   project_core(cam, p, s, q, P);
-  int nb = sh_count(degree);
   double Y[16];
   sh_basis(degree, P.dir, Y);
   double gY[16];
@@ -101,15 +109,29 @@ __global__ void project_bwd_kernel(Cam cam, int64_t N, int K, int Cc, int degree
 }
 
 // ================================ binning =========================================================
+// One pass per Gaussian: its number of tile pairs, its key for the stable depth sort (the bits of
+// a positive float order like the number; Gaussians that are not drawn sort last) and the count of
+// invalid inputs (radius -1 from the projection), so that binning needs no ATen op before its sync.
 template <typename S>
-__global__ void count_tiles_kernel(int64_t N, const S* __restrict__ means2d, const int32_t* __restrict__ radii,
-                                   int tile, int tiles_x, int tiles_y, int64_t* counts) {
+__global__ void bin_prep_kernel(int64_t N, const S* __restrict__ means2d, const S* __restrict__ depths,
+                                const int32_t* __restrict__ radii, int tile, int tiles_x, int tiles_y,
+                                int64_t* counts, uint64_t* dkeys, int32_t* didx, unsigned long long* n_invalid) {
   int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (i >= N) return;
+  const int rad = radii[i];
   int r[4];
-  counts[i] = tile_rect((double)means2d[2 * i], (double)means2d[2 * i + 1], radii[i], tile, tiles_x, tiles_y, r)
+  counts[i] = tile_rect((double)means2d[2 * i], (double)means2d[2 * i + 1], rad, tile, tiles_x, tiles_y, r)
                   ? (int64_t)(r[2] - r[0] + 1) * (r[3] - r[1] + 1)
                   : 0;
+  uint64_t b;
+  if (sizeof(S) == 8) {
+    b = (uint64_t)__double_as_longlong((double)depths[i]);
+  } else {
+    b = (uint64_t)__float_as_uint((float)depths[i]);
+  }
+  dkeys[i] = rad > 0 ? b : ~0ull;
+  didx[i] = (int32_t)i;
+  if (rad < 0) atomicAdd(n_invalid, 1ull);
 }
 
 // Pairs are emitted in depth order (rank r = position in the stable depth sort), keyed
@@ -131,24 +153,6 @@ __global__ void emit_pairs_kernel(int64_t N, const int32_t* __restrict__ order, 
       vals[k] = i;
       ++k;
     }
-}
-
-// Depth keys for the stable depth sort: the bits of a positive float order like the number;
-// Gaussians that are not drawn sort last.
-template <typename S>
-__global__ void depth_key_kernel(int64_t N, const S* __restrict__ depths, const int32_t* __restrict__ radii,
-                                 uint64_t* keys, int32_t* idx) {
-  int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
-  if (i >= N) return;
-  uint64_t b;
-  if (sizeof(S) == 8) {
-    double d = (double)depths[i];
-    b = (uint64_t)__double_as_longlong(d);
-  } else {
-    b = (uint64_t)__float_as_uint((float)depths[i]);
-  }
-  keys[i] = radii[i] > 0 ? b : ~0ull;
-  idx[i] = (int32_t)i;
 }
 
 __global__ void gather_counts_kernel(int64_t N, const int32_t* __restrict__ order, const int64_t* __restrict__ counts,
@@ -404,8 +408,8 @@ std::vector<torch::Tensor> project_backward_cuda(torch::Tensor means, torch::Ten
   int64_t N = means.size(0);
   int K = (int)sh.size(1), Cc = (int)sh.size(2);
   Cam cam = make_cam(viewmat, intr, W, H, near);
-  auto g_means = torch::zeros_like(means), g_scales = torch::zeros_like(scales);
-  auto g_quats = torch::zeros_like(quats), g_sh = torch::zeros_like(sh);
+  auto g_means = torch::empty_like(means), g_scales = torch::empty_like(scales);  // the kernel writes every entry
+  auto g_quats = torch::empty_like(quats), g_sh = torch::empty_like(sh);
   if (N == 0) return {g_means, g_scales, g_quats, g_sh};
   auto stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward_cuda", [&] {
@@ -431,23 +435,21 @@ std::vector<torch::Tensor> bin_gaussians_cuda(torch::Tensor means2d, torch::Tens
   auto i32 = means2d.options().dtype(torch::kInt32);
   if (N == 0) return {torch::zeros({n_tiles + 1}, i64), torch::zeros({0}, i32), torch::zeros({1}, torch::kInt64)};
   auto stream = at::cuda::getCurrentCUDAStream();
-  // 1. pairs per Gaussian; invalid inputs (radius < 0 from the projection) are counted too
+  // 1. pairs per Gaussian, depth keys, invalid inputs (radius < 0 from the projection) counted
   auto counts = torch::empty({N}, i64);
-  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_count_cuda", [&] {
-    count_tiles_kernel<scalar_t><<<blocks_for(N), kThreads, 0, stream>>>(
-        N, means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), (int)tile, tiles_x, tiles_y,
-        counts.data_ptr<int64_t>());
-  });
-  check_cuda_launch("bin_gaussians_cuda (count)");
-  // 2. stable depth order (radix sort of the depth bits, index order kept on ties)
   auto dkeys = torch::empty({N}, i64), dkeys_out = torch::empty({N}, i64);
   auto didx = torch::empty({N}, i32), order = torch::empty({N}, i32);
-  int depth_bits = depths.scalar_type() == torch::kFloat64 ? 64 : 32;
-  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_depth_cuda", [&] {
-    depth_key_kernel<scalar_t><<<blocks_for(N), kThreads, 0, stream>>>(
-        N, depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), reinterpret_cast<uint64_t*>(dkeys.data_ptr<int64_t>()),
-        didx.data_ptr<int32_t>());
+  auto stats = torch::empty({2}, i64);  // [pairs, invalid Gaussians]
+  AT_CUDA_CHECK(cudaMemsetAsync(stats.data_ptr<int64_t>(), 0, 2 * sizeof(int64_t), stream));
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_prep_cuda", [&] {
+    bin_prep_kernel<scalar_t><<<blocks_for(N), kThreads, 0, stream>>>(
+        N, means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), (int)tile, tiles_x,
+        tiles_y, counts.data_ptr<int64_t>(), reinterpret_cast<uint64_t*>(dkeys.data_ptr<int64_t>()),
+        didx.data_ptr<int32_t>(), reinterpret_cast<unsigned long long*>(stats.data_ptr<int64_t>() + 1));
   });
+  check_cuda_launch("bin_gaussians_cuda (prep)");
+  // 2. stable depth order (radix sort of the depth bits, index order kept on ties)
+  int depth_bits = depths.scalar_type() == torch::kFloat64 ? 64 : 32;
   {
     size_t tmp_bytes = 0;
     auto* kin = reinterpret_cast<uint64_t*>(dkeys.data_ptr<int64_t>());
@@ -458,14 +460,27 @@ std::vector<torch::Tensor> bin_gaussians_cuda(torch::Tensor means2d, torch::Tens
     cub::DeviceRadixSort::SortPairs(tmp.data_ptr(), tmp_bytes, kin, kout, didx.data_ptr<int32_t>(),
                                     order.data_ptr<int32_t>(), (int)N, 0, depth_bits, stream);
   }
-  auto counts_sorted = torch::empty({N}, i64);
+  // 3. pair counts in depth order, their running sum: each Gaussian's end in the pair buffer
+  auto counts_sorted = torch::empty({N}, i64), ends = torch::empty({N}, i64);
   gather_counts_kernel<<<blocks_for(N), kThreads, 0, stream>>>(N, order.data_ptr<int32_t>(), counts.data_ptr<int64_t>(),
                                                                counts_sorted.data_ptr<int64_t>());
-  auto ends = torch::cumsum(counts_sorted, 0);
+  {
+    size_t tmp_bytes = 0;
+    cub::DeviceScan::InclusiveSum(nullptr, tmp_bytes, counts_sorted.data_ptr<int64_t>(), ends.data_ptr<int64_t>(),
+                                  (int)N, stream);
+    auto tmp = torch::empty({(int64_t)tmp_bytes}, means2d.options().dtype(torch::kUInt8));
+    cub::DeviceScan::InclusiveSum(tmp.data_ptr(), tmp_bytes, counts_sorted.data_ptr<int64_t>(),
+                                  ends.data_ptr<int64_t>(), (int)N, stream);
+  }
+  check_cuda_launch("bin_gaussians_cuda (scan)");
   // the one host sync: the pair buffers' size, and how many Gaussians had invalid inputs
-  auto stats = torch::stack({ends[N - 1], (radii < 0).sum().to(torch::kInt64)}).cpu();
-  int64_t total = stats[0].item<int64_t>();
-  auto invalid = stats.slice(0, 1, 2).clone();
+  int64_t host[2] = {0, 0};
+  AT_CUDA_CHECK(cudaMemcpyAsync(stats.data_ptr<int64_t>(), ends.data_ptr<int64_t>() + (N - 1), sizeof(int64_t),
+                                cudaMemcpyDeviceToDevice, stream));
+  AT_CUDA_CHECK(cudaMemcpyAsync(host, stats.data_ptr<int64_t>(), 2 * sizeof(int64_t), cudaMemcpyDeviceToHost, stream));
+  AT_CUDA_CHECK(cudaStreamSynchronize(stream));
+  const int64_t total = host[0];
+  auto invalid = torch::full({1}, host[1], torch::TensorOptions().dtype(torch::kInt64));
   auto keys = torch::empty({total}, i64), keys_out = torch::empty({total}, i64);
   auto vals = torch::empty({total}, i32), ids = torch::empty({total}, i32);
   auto offsets = torch::empty({n_tiles + 1}, i64);
@@ -534,8 +549,11 @@ std::vector<torch::Tensor> rasterize_backward_cuda(torch::Tensor means2d, torch:
   int F = (int)feat.size(1);
   TORCH_CHECK(F <= kMaxFeatures, "rasterize_backward_cuda: at most ", kMaxFeatures, " feature channels, got ", F);
   TORCH_CHECK((tile * tile) % 32 == 0, "rasterize_backward_cuda: tile * tile must be a multiple of 32, got tile ", tile);
-  auto g_m = torch::zeros_like(means2d), g_c = torch::zeros_like(conics);
-  auto g_o = torch::zeros_like(opac), g_f = torch::zeros_like(feat);
+  // the four gradients are summed into with atomics: one zeroed buffer (one memset), four views
+  const int64_t N = means2d.size(0);
+  auto g_all = torch::zeros({N * (6 + F)}, means2d.options());
+  auto g_m = g_all.narrow(0, 0, 2 * N).view({N, 2}), g_c = g_all.narrow(0, 2 * N, 3 * N).view({N, 3});
+  auto g_o = g_all.narrow(0, 5 * N, N).view_as(opac), g_f = g_all.narrow(0, 6 * N, F * N).view({N, F});
   int tiles_x = (int)((W + tile - 1) / tile), tiles_y = (int)((H + tile - 1) / tile);
   int threads = (int)(tile * tile);
   auto stream = at::cuda::getCurrentCUDAStream();
