@@ -19,7 +19,7 @@ TABLE1_WEIGHTS = {"rgb": 0.2, "ssim": 0.1, "density": 0.1, "aniso": 0.1, "volume
 
 # ---- visual consistency (3DGS, Kerbl et al. 2023) --------------------------------------------------
 def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """L_rgb: mean absolute error."""
+    """L_rgb: mean absolute error (of a batch of same-size images: the mean of their L_rgb)."""
     return (pred - target).abs().mean()
 
 
@@ -38,19 +38,26 @@ def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, g.view(1, 1, k, 1).expand(c, 1, k, 1), groups=c, padding=(k // 2, 0))
 
 
+def _nchw(img: torch.Tensor) -> torch.Tensor:
+    """(H, W, C) or a batch (B, H, W, C) -> (B, C, H, W)."""
+    return img.permute(2, 0, 1)[None] if img.dim() == 3 else img.permute(0, 3, 1, 2)
+
+
 def blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """(H, W, C) image blurred with a Gaussian of ``sigma`` pixels (separable, zero padding)."""
+    """(H, W, C) image, or a batch (B, H, W, C), blurred with a Gaussian of ``sigma`` pixels
+    (separable, zero padding)."""
     size = 2 * int(math.ceil(3 * sigma)) + 1
-    x = img.permute(2, 0, 1)[None]
+    x = _nchw(img)
     g = _gauss_1d(size, float(sigma), x.dtype, str(x.device))
-    return _blur(x, g)[0].permute(1, 2, 0)
+    y = _blur(x, g).permute(0, 2, 3, 1)
+    return y[0] if img.dim() == 3 else y
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean SSIM (Wang et al. 2004) of (H, W, C) images in [0, 1] with an 11x11 Gaussian window
-    (sigma 1.5), zero padding as in 3DGS. Separable filtering: 2 x 11 taps per pixel, not 121."""
-    x = pred.permute(2, 0, 1)[None]
-    y = target.permute(2, 0, 1)[None]
+    (sigma 1.5), zero padding as in 3DGS. Separable filtering: 2 x 11 taps per pixel, not 121.
+    A batch (B, H, W, C) of same-size images gives the mean of their SSIMs."""
+    x, y = _nchw(pred), _nchw(target)
     g = _gauss_1d(window, sigma, x.dtype, str(x.device))
     both = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g)
     c = x.shape[1]
@@ -165,21 +172,34 @@ def least_motion(positions: list, taus: list, spacing: float) -> torch.Tensor:
     return total
 
 
+def _to_camera(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """(I, N, 3) world points in each of I cameras (I, 4, 4): (I, N, 3) camera coordinates."""
+    return means @ viewmat[:, :3, :3].transpose(1, 2) + viewmat[:, None, :3, 3]
+
+
 def hull_distance(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
     """Mean over particles of the silhouette distance (``silhouette_distance``) at each particle's
     projection: a pull towards the fluid's silhouette that reaches particles far outside it (the
-    image loss only reaches a particle through pixels it covers). Particles behind the camera add 0."""
-    t = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = t[:, 2]
+    image loss only reaches a particle through pixels it covers). Particles behind the camera add 0.
+
+    One image: means (N, 3), dist (H, W), viewmat (4, 4), intr (4,) -> a scalar. A batch of I
+    images of one size (one call instead of I): means (I, N, 3), dist (I, H, W), viewmat
+    (I, 4, 4), intr (I, 4) -> (I,), one value per image."""
+    single = means.dim() == 2
+    if single:
+        means, dist, viewmat, intr = means[None], dist[None], viewmat[None], intr[None]
+    t = _to_camera(means, viewmat)
+    z = t[..., 2]
     front = z > 1e-6
     zs = torch.where(front, z, torch.ones_like(z))
-    u = intr[0] * t[:, 0] / zs + intr[2]
-    v = intr[1] * t[:, 1] / zs + intr[3]
-    H, W = dist.shape
-    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[None, None]  # pixel edges at +-1
-    d = torch.nn.functional.grid_sample(dist[None, None], grid, mode="bilinear", padding_mode="border",
-                                        align_corners=False)[0, 0, 0]
-    return torch.where(front, d, torch.zeros_like(d)).mean()
+    u = intr[:, 0:1] * t[..., 0] / zs + intr[:, 2:3]
+    v = intr[:, 1:2] * t[..., 1] / zs + intr[:, 3:4]
+    H, W = dist.shape[-2:]
+    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[:, None]  # (I, 1, N, 2); pixel edges at +-1
+    d = torch.nn.functional.grid_sample(dist[:, None], grid, mode="bilinear", padding_mode="border",
+                                        align_corners=False)[:, 0, 0]
+    out = torch.where(front, d, torch.zeros_like(d)).mean(-1)
+    return out[0] if single else out
 
 
 def silhouette_coverage(means: torch.Tensor, pixels: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor,
@@ -187,15 +207,21 @@ def silhouette_coverage(means: torch.Tensor, pixels: torch.Tensor, viewmat: torc
     """The other direction: mean over fluid pixels ``pixels`` (P, 2) (u, v centres; a random subset
     of the mask) of the distance (x image width) to the nearest particle's projection. It pulls the
     nearest particles into parts of the silhouette that no particle covers (a spreading pool's
-    rim, a splash)."""
-    if pixels.shape[0] == 0 or means.shape[0] == 0:
-        return means.sum() * 0.0
-    t = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = t[:, 2].clamp_min(1e-6)
-    uv = torch.stack([intr[0] * t[:, 0] / z + intr[2], intr[1] * t[:, 1] / z + intr[3]], -1)
-    uv = torch.where((t[:, 2] > 1e-6)[:, None], uv, torch.full_like(uv, 1e9))
-    d = torch.cdist(pixels.to(uv.dtype), uv).min(1).values
-    return d.mean() / width
+    rim, a splash). Batched like ``hull_distance``: means (I, N, 3), pixels (I, P, 2), viewmat
+    (I, 4, 4), intr (I, 4) -> (I,)."""
+    single = means.dim() == 2
+    if single:
+        means, pixels, viewmat, intr = means[None], pixels[None], viewmat[None], intr[None]
+    if pixels.shape[1] == 0 or means.shape[1] == 0:
+        out = means.sum((1, 2)) * 0.0
+        return out[0] if single else out
+    t = _to_camera(means, viewmat)
+    z = t[..., 2].clamp_min(1e-6)
+    uv = torch.stack([intr[:, 0:1] * t[..., 0] / z + intr[:, 2:3], intr[:, 1:2] * t[..., 1] / z + intr[:, 3:4]], -1)
+    uv = torch.where((t[..., 2] > 1e-6)[..., None], uv, torch.full_like(uv, 1e9))
+    d = torch.cdist(pixels.to(uv.dtype), uv).min(-1).values  # (I, P)
+    out = d.mean(-1) / width
+    return out[0] if single else out
 
 
 # ---- metrics shared with evaluation ---------------------------------------------------------------

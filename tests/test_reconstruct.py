@@ -110,6 +110,51 @@ def test_density_loss_matches_a_direct_sum_and_its_gradient_flows():
     assert torch.isfinite(xr.grad).all() and float(xr.grad.abs().max()) > 0
 
 
+def test_silhouette_terms_batched_equal_one_image_at_a_time():
+    """The trainer's one call per image size gives each image's hull distance and coverage, and
+    the same gradients, as one call per image (a camera with particles behind it included)."""
+    from gf_core.camera import Camera
+
+    g = torch.Generator().manual_seed(1)
+    alpha = torch.zeros(24, 32, dtype=torch.float64)
+    alpha[6:18, 10:22] = 1.0
+    dist = L.silhouette_distance(alpha)
+    cams = [Camera.look_at((0.0, -2.0, 0.5), (0, 0, 0.3), (0, 0, 1), fx=40.0, width=32, height=24),
+            Camera.look_at((1.5, 1.0, 0.4), (0, 0, 0.3), (0, 0, 1), fx=30.0, width=32, height=24),
+            Camera.look_at((0.0, -0.05, 0.3), (0, 1, 0.3), (0, 0, 1), fx=20.0, width=32, height=24)]  # in the cloud
+    means = [(torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5) * 0.6 + torch.tensor([0, 0, 0.3])
+             for _ in cams]
+    pix = torch.rand(3, 40, 2, generator=g, dtype=torch.float64) * torch.tensor([32.0, 24.0])
+    vm_k = [c.to_torch(dtype=torch.float64) for c in cams]
+    one = [(m.clone().requires_grad_(True)) for m in means]
+    terms = [L.hull_distance(m, dist, v, k) + L.silhouette_coverage(m, p, v, k, 32)
+             for m, p, (v, k) in zip(one, pix, vm_k)]
+    sum(terms).backward()
+    many = torch.stack(means).requires_grad_(True)
+    vm, K = torch.stack([v for v, _ in vm_k]), torch.stack([k for _, k in vm_k])
+    hd = L.hull_distance(many, torch.stack([dist] * 3), vm, K)
+    sc = L.silhouette_coverage(many, pix, vm, K, 32)
+    assert hd.shape == sc.shape == (3,)
+    assert torch.allclose(hd + sc, torch.stack(terms).detach(), rtol=1e-12)
+    (hd + sc).sum().backward()
+    for k in range(3):
+        assert torch.allclose(many.grad[k], one[k].grad, rtol=1e-10, atol=1e-14)
+    assert float((torch.stack(means)[2] @ vm[2, :3, :3].T + vm[2, :3, 3])[:, 2].min()) < 0  # some behind camera 2
+    empty = L.silhouette_coverage(many, pix[:, :0], vm, K, 32)
+    assert empty.shape == (3,) and float(empty.detach().abs().sum()) == 0.0
+
+
+def test_image_losses_of_a_batch_are_the_mean_of_each_images():
+    """The trainer's image loss takes the step's images as one batch: L1, SSIM and the blur give
+    the mean of the per-image values."""
+    g = torch.Generator().manual_seed(2)
+    pred, target = torch.rand(2, 4, 20, 17, 3, generator=g, dtype=torch.float64)
+    for f in (L.l1, L.ssim, lambda a, b: L.l1(L.blur(a, 1.3), L.blur(b, 1.3))):
+        each = torch.stack([f(p, t) for p, t in zip(pred, target)]).mean()
+        assert torch.allclose(f(pred, target), each, rtol=1e-12)
+    assert torch.allclose(L.blur(pred, 2.0)[3], L.blur(pred[3], 2.0), rtol=1e-12)
+
+
 def test_weight_schedule_follows_the_paper():
     cfg = make_config("water")
     w1 = loss_weights(cfg, 1, 1.0)
