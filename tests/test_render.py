@@ -277,3 +277,19 @@ def test_compiler_diagnostic_reaches_the_user(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
     assert r.returncode != 0
     assert "error: expected primary-expression" in r.stderr and "render_cpu.cpp" in r.stderr
+
+
+def test_extension_cache_folder_is_per_source_checkout(tmp_path, monkeypatch):
+    """Two checkouts sharing GF_EXT_DIR get a build folder each (ninja's build file names the
+    sources by path: one shared folder would be rebuilt by each checkout in turn); the same
+    checkout gets the same folder again."""
+    import shutil
+
+    monkeypatch.setenv("GF_EXT_DIR", str(tmp_path / "ext"))
+    a = native._build_dir(False, None)
+    assert native._build_dir(False, None) == a
+    copy = tmp_path / "other" / "csrc"
+    shutil.copytree(native.CSRC, copy)
+    monkeypatch.setattr(native, "CSRC", copy)
+    b = native._build_dir(False, None)
+    assert b != a and b.parent == a.parent

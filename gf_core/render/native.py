@@ -8,8 +8,9 @@ What is built: ``csrc/ext.cpp`` (one entry per op: checks, then CPU/CUDA dispatc
 
 The build uses the ``ninja`` installed beside this Python (the project's venv), whatever PATH
 says. The cache folder is keyed on everything that changes the binary: the sources' contents,
-the flags, the C++ compiler's and nvcc's versions, torch's and Python's versions and, for
-``-march=native``, the CPU. It lives under ``$GF_EXT_DIR`` (default ``~/.cache/gaussfluids``).
+the flags, the C++ compiler's and nvcc's versions, torch's and Python's versions, for
+``-march=native`` the CPU, and the sources' folder (two checkouts get a folder each). It lives
+under ``$GF_EXT_DIR`` (default ``~/.cache/gaussfluids``).
 
 If it cannot be built, ``available()`` is False, one warning says why (the compiler's own
 first error lines; the whole log is kept in the build folder) and the renderer falls back to
@@ -119,7 +120,10 @@ def _build_dir(with_cuda: bool, cuda_home: str | None) -> Path:
     except OSError:
         cpu = platform.processor()
     cxx = os.environ.get("CXX", "c++")
-    parts = [cpu, torch.__version__, platform.python_version(), " ".join(CXX_FLAGS), _version([cxx, "--version"])]
+    # the sources' folder too: ninja's build file names the sources by path, so two checkouts that
+    # shared a folder would rebuild it in turn, each for its own paths
+    parts = [cpu, torch.__version__, platform.python_version(), " ".join(CXX_FLAGS), _version([cxx, "--version"]),
+             str(CSRC.resolve())]
     if with_cuda:
         parts += [" ".join(NVCC_FLAGS), _version([str(Path(cuda_home, "bin", "nvcc")), "--version"]),
                   torch.version.cuda or "", str(torch.cuda.get_device_capability(0))]
