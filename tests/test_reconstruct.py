@@ -259,6 +259,8 @@ def test_resume_continues_exactly(blob, tmp_path, extra):
     tr.step = stop_at_100
     with pytest.raises(KeyboardInterrupt):
         tr.run()
+    if extra:  # the residuals' own momentum reaches their optimiser groups, the others keep Adam's
+        assert tr.opt.group("residual_dp")["betas"][0] == 0.0 and tr.opt.group("means")["betas"][0] == 0.9
     b = reconstruct(load_dataset(blob), tmp_path / "b", cfg, resume=True, log=quiet)
     ra, rb = read_recon(tmp_path / "a" / "recon.h5"), read_recon(tmp_path / "b" / "recon.h5")
     assert a["iterations"] == b["iterations"] == 240
