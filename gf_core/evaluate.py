@@ -13,7 +13,7 @@ import torch
 
 from .errors import InputError
 from .io import atomic_write_text, read_recon, read_sim
-from .metrics import density_spread, image_metrics, mechanical_energy, particle_error, transport_distance
+from .metrics import density_spread, image_metrics, mechanical_energy, particle_error, shape_spread, transport_distance
 from .model import FluidModel
 from .render import render
 
@@ -105,6 +105,12 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
     dens = [{"time": float(t), **density_spread(st["means"], h)} for t, st in zip(times, states)]
     result["density"] = {"h": h, "per_frame": dens, "std_mean": float(np.mean([d["std"] for d in dens]))}
     log(f"SPH density D_i / mean: standard deviation {result['density']['std_mean']:.3f} (mean over frames, h = {h:.4g} m)")
+    shp = [{"time": float(t), **shape_spread(st["scales"])} for t, st in zip(times, states)]
+    result["shape"] = {"per_frame": shp, **{f"{k}_mean": float(np.mean([f[k] for f in shp]))
+                                            for k in ("volume", "aniso", "axis_ratio_median", "axis_ratio_p95")}}
+    log(f"particle shapes: L_vol {result['shape']['volume_mean']:.3f}, L_aniso {result['shape']['aniso_mean']:.3f}, "
+        f"longest/shortest axis median {result['shape']['axis_ratio_median_mean']:.2f}, 95th percentile "
+        f"{result['shape']['axis_ratio_p95_mean']:.2f} (means over frames)")
     result["particle_stats"] = particle_stats(r)
     gt_file = gt_path or (dataset.gt_file if dataset is not None else None)
     sim = read_sim(gt_file) if gt_file else None

@@ -219,7 +219,10 @@ def silhouette_coverage(means: torch.Tensor, pixels: torch.Tensor, viewmat: torc
     z = t[..., 2].clamp_min(1e-6)
     uv = torch.stack([intr[:, 0:1] * t[..., 0] / z + intr[:, 2:3], intr[:, 1:2] * t[..., 1] / z + intr[:, 3:4]], -1)
     uv = torch.where((t[..., 2] > 1e-6)[..., None], uv, torch.full_like(uv, 1e9))
-    d = torch.cdist(pixels.to(uv.dtype), uv).min(-1).values  # (I, P)
+    pixels = pixels.to(uv.dtype)
+    with torch.no_grad():  # which projection is nearest: no gradient through the (I, P, N) distances
+        j = torch.cdist(pixels, uv).argmin(-1)  # (I, P)
+    d = (pixels - torch.gather(uv, 1, j[..., None].expand(-1, -1, 2))).norm(dim=-1)  # (I, P), the min's value and gradient
     out = d.mean(-1) / width
     return out[0] if single else out
 

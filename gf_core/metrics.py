@@ -10,7 +10,7 @@ import math
 import numpy as np
 import torch
 
-from .losses import poly6, psnr, sph_density_knn, ssim
+from .losses import anisotropy, poly6, psnr, sph_density_knn, ssim, volume_consistency
 from .neighbors import knn
 
 
@@ -73,6 +73,18 @@ def density_spread(positions: torch.Tensor, h: float, k: int = 64) -> dict:
     rel = d / d.mean()
     return {"std": float(rel.std(unbiased=False)), "mean": float(d.mean()),
             "self_only_fraction": float((d <= float(poly6(torch.zeros(()), h)) * (1 + 1e-6)).float().mean())}
+
+
+def shape_spread(scales: torch.Tensor) -> dict:
+    """How far the particles are from equal, round ones (what Eqs. 7 and 8 ask for): the paper's
+    volume consistency L_vol and anisotropy L_aniso of the scales (N, 3), and the median and 95th
+    percentile of each particle's longest / shortest axis."""
+    s = scales.detach().double()
+    if s.shape[0] == 0:
+        return {"volume": math.nan, "aniso": math.nan, "axis_ratio_median": math.nan, "axis_ratio_p95": math.nan}
+    ratio = s.max(-1).values / s.min(-1).values.clamp_min(1e-30)
+    return {"volume": float(volume_consistency(s)), "aniso": float(anisotropy(s)),
+            "axis_ratio_median": float(ratio.median()), "axis_ratio_p95": float(torch.quantile(ratio, 0.95))}
 
 
 def mechanical_energy(positions, velocities, mass, z_ref: float, g: float = 9.81) -> dict:

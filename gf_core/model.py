@@ -114,11 +114,10 @@ class FluidModel(nn.Module):
     def set_per_particle(self, name: str, value: torch.Tensor) -> nn.Parameter:
         if name.startswith(RESIDUAL_PREFIX):
             return self.decoder.set_residual(name, value)
-        p = nn.Parameter(value.detach().clone())
         if name == "features":
-            self.decoder.features = p
-        else:
-            setattr(self, name, p)
+            return self.decoder.replace_features(value)
+        p = nn.Parameter(value.detach().clone())
+        setattr(self, name, p)
         return p
 
     # ---- decoding ----------------------------------------------------------------------------------

@@ -82,6 +82,7 @@ class PhaseConfig:
     time_curriculum: float = 0.5   # phase 2 samples times near the canonical one, widening to the clip over this fraction
     error_sampling: float = 0.0    # share of the time draws made in proportion to each frame's recent image error
     residuals_from: int = 3        # the phase (2 or 3) from which the decoder residuals are trained
+    freeze_decoder: bool = False   # phase 3 trains the canonical particles and residuals only (theta, Phi frozen)
 
 
 @dataclass
@@ -157,6 +158,9 @@ class ReconConfig:
             raise InputError(where, f"phases.time_curriculum must be in [0, 1], got {ph.time_curriculum}")
         if ph.residuals_from not in (2, 3):
             raise InputError(where, f"phases.residuals_from must be 2 or 3, got {ph.residuals_from}")
+        if ph.freeze_decoder and not self.decoder.residuals:
+            raise InputError(where, "phases.freeze_decoder needs decoder.residuals = true (a frozen decoder "
+                                    "without residuals could not move the particles in phase 3)")
         if not 0 <= self.lr.residuals_beta1 < 1:
             raise InputError(where, f"lr.residuals_beta1 must be in [0, 1), got {self.lr.residuals_beta1}")
         if not 0 <= ph.error_sampling <= 1:

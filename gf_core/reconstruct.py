@@ -371,16 +371,20 @@ class Trainer:
     def _set_lrs(self, run_progress: float) -> None:
         decay = self.cfg.lr.means_final ** run_progress
         f = 1.0 if self.phase == 1 else self.cfg.lr.canonical_dynamic
+        dec = self.model.decoder
+        frozen = dec is not None and self.phase == 3 and self.cfg.phases.freeze_decoder
+        if dec is not None:
+            dec.freeze(frozen)  # theta and Phi get no gradient (phases.freeze_decoder)
         for name, lr in self.base_lrs.items():
             if name == "features":
-                self.opt.set_lr(name, lr if self.phase > 1 else 0.0)
+                self.opt.set_lr(name, lr if self.phase > 1 and not frozen else 0.0)
             elif name.startswith("residual_"):
                 on = self.phase >= self.cfg.phases.residuals_from
                 self.opt.set_lr(name, lr if on else 0.0)  # no decay: each frame gets a few hundred steps
             else:
                 self.opt.set_lr(name, lr * f * (decay if name == "means" else 1.0))
-        if self.model.decoder is not None:
-            self.opt.set_lr("mlp", self.cfg.lr.mlp if self.phase > 1 else 0.0)
+        if dec is not None:
+            self.opt.set_lr("mlp", self.cfg.lr.mlp if self.phase > 1 and not frozen else 0.0)
 
     # ---- one step ----------------------------------------------------------------------------------------
     def _neighbors(self, key, means: torch.Tensor):

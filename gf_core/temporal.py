@@ -120,6 +120,7 @@ class Decoder(nn.Module):
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
         self.layers = nn.ModuleList(layers + [last])
+        self._frozen = None  # freeze(): {tau: (tau - tau0) Phi (N, outputs)} while frozen
 
     @property
     def num_particles(self) -> int:
@@ -164,11 +165,38 @@ class Decoder(nn.Module):
         features' part of the first layer is computed once): dict of (T, N, k) tensors."""
         feats = self.features if features is None else features
         n = feats.shape[0]
+        keys = None  # the frozen decoder's cache keys: the times as given (python numbers only, no sync)
+        if self._frozen is not None and features is None and not with_velocity and \
+                not isinstance(taus, torch.Tensor) and all(isinstance(t, (int, float)) for t in taus):
+            keys = [float(t) for t in taus]
         if isinstance(taus, torch.Tensor):
             tau_t = taus.to(feats.dtype).reshape(-1)
         else:  # a fill on the device, not a host-to-device copy (which would wait for the GPU)
             tau_t = torch.stack([t.to(feats.dtype).reshape(()) if isinstance(t, torch.Tensor) else
                                  torch.full((), float(t), dtype=feats.dtype, device=feats.device) for t in taus])
+        if keys is not None:
+            mlp = self._frozen_mlp(keys, tau_t)
+        else:
+            mlp, vmlp = self._mlp(tau_t, feats, with_velocity)
+        tau0 = torch.full((1,), float(self.cfg.canonical_time), dtype=feats.dtype, device=feats.device)
+        out = {}
+        k = 0
+        for name, width in OUTPUTS.items():
+            out[name] = mlp[..., k:k + width]
+            if with_velocity and name == "dp":
+                out["vp"] = vmlp
+            if self.knots is not None:
+                r, dr = self._residual_at(tau_t, name)
+                out[name] = out[name] + r - self._residual_at(tau0, name)[0]
+                if with_velocity and name == "dp":
+                    out["vp"] = out["vp"] + dr
+            k += width
+        return out
+
+    def _mlp(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool):
+        """(tau - tau0) Phi(theta, gamma(tau)) (T, N, outputs) and, with ``with_velocity``, the
+        derivative of its position part along tau (T, N, 3), else None."""
+        n = feats.shape[0]
         nt = tau_t.shape[0]
         gamma, dgamma = encode_time(tau_t, self.cfg.n_freqs, self.cfg.include_input)  # (T, D)
         a_theta, a_gamma = self._first_layer(feats, gamma)                             # (N, W), (T, W)
@@ -185,24 +213,40 @@ class Decoder(nn.Module):
         if with_velocity:
             dh = dh.reshape(nt, n, -1)
         scale = (tau_t - self.cfg.canonical_time)[:, None, None]
-        tau0 = torch.full((1,), float(self.cfg.canonical_time), dtype=feats.dtype, device=feats.device)
-        out = {}
-        k = 0
-        for name, width in OUTPUTS.items():
-            out[name] = scale * h[..., k:k + width]
-            if with_velocity and name == "dp":
-                out["vp"] = h[..., k:k + width] + scale * dh[..., k:k + width]
-            if self.knots is not None:
-                r, dr = self._residual_at(tau_t, name)
-                out[name] = out[name] + r - self._residual_at(tau0, name)[0]
-                if with_velocity and name == "dp":
-                    out["vp"] = out["vp"] + dr
-            k += width
-        return out
+        vp = None
+        if with_velocity:  # dp is OUTPUTS' first entry
+            vp = h[..., :3] + scale * dh[..., :3]
+        return scale * h, vp
+
+    # ---- a frozen Phi (the trainer's phases.freeze_decoder) ---------------------------------------
+    def freeze(self, on: bool) -> None:
+        """While frozen, ``forward_many`` (own features, no velocities, times given as numbers)
+        computes (tau - tau0) Phi once per time and reuses it: theta and the MLP get no gradient,
+        the residuals still do. Unfreezing, or new features (densify/prune), drops what was kept."""
+        if not on:
+            self._frozen = None
+        elif self._frozen is None:
+            self._frozen = {}
+
+    @property
+    def frozen(self) -> bool:
+        return self._frozen is not None
+
+    def _frozen_mlp(self, keys, tau_t: torch.Tensor) -> torch.Tensor:
+        missing = [j for j, key in enumerate(keys) if key not in self._frozen]
+        if missing:
+            with torch.no_grad():
+                new, _ = self._mlp(tau_t[missing], self.features, False)
+            for j, v in zip(missing, new):
+                self._frozen[keys[j]] = v
+        return torch.stack([self._frozen[key] for key in keys])
 
     # ---- surgery (densify / prune keep theta aligned with the particles) -------------------------
-    def replace_features(self, new: torch.Tensor) -> None:
+    def replace_features(self, new: torch.Tensor) -> nn.Parameter:
         self.features = nn.Parameter(new.detach().clone())
+        if self._frozen is not None:  # kept outputs belong to the old particles
+            self._frozen = {}
+        return self.features
 
     def set_residual(self, name: str, value: torch.Tensor) -> nn.Parameter:
         p = nn.Parameter(value.detach().clone())

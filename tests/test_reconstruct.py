@@ -65,6 +65,62 @@ def test_decoder_velocity_matches_finite_differences(n):
         assert float(close.double().mean()) >= 0.99 and (n > 100 or bool(close.all()))
 
 
+def test_frozen_decoder_reuses_its_output_and_trains_only_the_residuals(monkeypatch):
+    """phases.freeze_decoder: while frozen, (tau - tau0) Phi is computed once per time and equals
+    the live output; no gradient reaches theta or Phi, the residuals still get theirs; new
+    features (densify/prune) drop what was kept."""
+    torch.manual_seed(1)
+    d = Decoder(30, DecoderConfig(residuals=True), knots=[0.0, 0.25, 0.5, 0.75, 1.0], dtype=torch.float64)
+    with torch.no_grad():
+        for p in d.parameters():
+            p.normal_(0, 0.1)
+    taus = [0.25, 0.6]
+    live = d.forward_many(taus)
+    d.freeze(True)
+    first = d.forward_many(taus)
+    for k in live:
+        assert torch.allclose(first[k], live[k], rtol=0, atol=1e-12), k
+    calls = []
+    orig = d._mlp
+    monkeypatch.setattr(d, "_mlp", lambda *a: calls.append(1) or orig(*a))
+    out = d.forward_many([0.6, 0.25, 0.6])          # times seen before: no MLP pass
+    assert not calls and torch.allclose(out["dp"][1], live["dp"][0], rtol=0, atol=1e-12)
+    sum(v.square().sum() for v in out.values()).backward()
+    assert d.features.grad is None and all(p.grad is None for p in d.mlp_parameters())
+    assert float(d.residual_dp.grad.abs().max()) > 0
+    d.forward_many([0.9])                           # a new time: one pass for it alone
+    assert len(calls) == 1
+    d.replace_features(d.features.detach() * 2)     # other particles: recomputed
+    again = d.forward_many(taus)
+    assert len(calls) == 2
+    d.freeze(False)
+    assert torch.allclose(again["dp"], d.forward_many(taus)["dp"], rtol=0, atol=1e-12)
+    assert not torch.allclose(again["dp"], live["dp"])
+    d.forward_many(taus)["dp"].sum().backward()     # unfrozen: Phi trains again
+    assert d.features.grad is not None and d.layers[-1].weight.grad is not None
+
+
+def test_frozen_decoder_leaves_theta_and_phi_as_phase_2_left_them(blob, tmp_path):
+    cfg = small_config(phases={"iterations": 200, "freeze_decoder": True}, decoder={"residuals": True})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
+    orig, seen = tr.step, {}
+
+    def step(*a):
+        if tr.phase == 3 and not seen:
+            seen["phi"] = [p.detach().clone() for p in [tr.model.decoder.features, *tr.model.decoder.mlp_parameters()]]
+            seen["res"] = tr.model.decoder.residual_dp.detach().clone()
+        return orig(*a)
+
+    tr.step = step
+    tr.run()
+    dec = tr.model.decoder
+    assert seen and dec.frozen
+    assert all(torch.equal(a, b) for a, b in zip(seen["phi"], [dec.features, *dec.mlp_parameters()]))
+    assert not torch.equal(seen["res"], dec.residual_dp)  # the residuals did train in phase 3
+    with pytest.raises(InputError, match="freeze_decoder needs decoder.residuals"):
+        small_config(phases={"freeze_decoder": True}, decoder={"residuals": False}).validate()
+
+
 def test_time_outside_the_clip_is_clamped_with_a_warning_or_refused():
     tm = TimeMap(0.0, 1.0)
     with pytest.warns(RuntimeWarning, match="outside the reconstructed clip"):
@@ -89,6 +145,16 @@ def test_loss_terms_are_zero_for_uniform_particles_and_positive_otherwise():
     assert abs(float(L.least_motion(moved, [0.0, 1.0, 0.5], 0.1)) - 2 * 4.0 / 0.5) < 1e-4
     img = torch.rand(20, 24, 3)
     assert abs(float(L.ssim(img, img)) - 1.0) < 1e-6 and float(L.d_ssim(img, torch.rand(20, 24, 3))) > 0.5
+
+
+def test_shape_spread_reports_eqs_7_and_8_and_axis_ratios():
+    from gf_core.metrics import shape_spread
+
+    s = shape_spread(torch.tensor([[1.0, 1.0, 1.0], [1.0, 2.0, 4.0]]))
+    assert s["volume"] == pytest.approx(((1 / 4.5 - 1) ** 2 + (8 / 4.5 - 1) ** 2) / 2)
+    assert s["aniso"] == pytest.approx((0.25 + 0 + 1) / 2)
+    assert s["axis_ratio_median"] == 1.0 and s["axis_ratio_p95"] == pytest.approx(1 + 0.95 * 3)
+    assert shape_spread(torch.full((5, 3), 0.01))["aniso"] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_density_loss_matches_a_direct_sum_and_its_gradient_flows():
@@ -142,6 +208,18 @@ def test_silhouette_terms_batched_equal_one_image_at_a_time():
     assert float((torch.stack(means)[2] @ vm[2, :3, :3].T + vm[2, :3, 3])[:, 2].min()) < 0  # some behind camera 2
     empty = L.silhouette_coverage(many, pix[:, :0], vm, K, 32)
     assert empty.shape == (3,) and float(empty.detach().abs().sum()) == 0.0
+    # the coverage is the mean of each pixel's minimum distance: the same value and gradient as
+    # differentiating through every distance (it takes the nearest projection's only)
+    ref_in = torch.stack(means).requires_grad_(True)
+    t = torch.einsum("inj,ikj->ink", ref_in, vm[:, :3, :3]) + vm[:, None, :3, 3]
+    z = t[..., 2].clamp_min(1e-6)
+    uv = torch.stack([K[:, 0:1] * t[..., 0] / z + K[:, 2:3], K[:, 1:2] * t[..., 1] / z + K[:, 3:4]], -1)
+    uv = torch.where((t[..., 2] > 1e-6)[..., None], uv, torch.full_like(uv, 1e9))
+    ref = torch.cdist(pix, uv).min(-1).values.mean(-1) / 32
+    ref.sum().backward()
+    many.grad = None
+    L.silhouette_coverage(many, pix, vm, K, 32).sum().backward()
+    assert torch.allclose(sc, ref.detach(), rtol=1e-10) and torch.allclose(many.grad, ref_in.grad, rtol=1e-8, atol=1e-14)
 
 
 def test_image_losses_of_a_batch_are_the_mean_of_each_images():
@@ -235,8 +313,8 @@ def test_density_term_makes_the_distribution_uniform_and_fills_the_interior(blob
 
 
 @pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True}, "lr": {"residuals_beta1": 0.0},
-                                       "phases": {"residuals_from": 2, "error_sampling": 0.5}}],
-                         ids=["paper", "residuals+error-sampling"])
+                                       "phases": {"residuals_from": 2, "error_sampling": 0.5, "freeze_decoder": True}}],
+                         ids=["paper", "residuals+error-sampling+frozen-decoder"])
 def test_resume_continues_exactly(blob, tmp_path, extra):
     """A run interrupted after a checkpoint and resumed ends where an uninterrupted run ends
     (with the decoder residuals, their own Adam momentum and error-weighted frames: their state
@@ -391,6 +469,7 @@ def test_cli_reconstruct_and_evaluate(blob, tmp_path, capsys):
     assert main(["evaluate", str(run)]) == 0
     ev = json.loads((run / "eval.json").read_text())
     assert math.isfinite(ev["train"]["psnr_mean"]) and "particles_vs_gt" in ev
+    assert len(ev["shape"]["per_frame"]) == 8 and ev["shape"]["axis_ratio_p95_mean"] >= ev["shape"]["axis_ratio_median_mean"] >= 1
     assert main(["reconstruct", str(blob), "--out", str(run), "--device", "foo"]) == 2
     assert "unknown device 'foo'" in capsys.readouterr().err
 
