@@ -234,7 +234,11 @@ def test_image_losses_of_a_batch_are_the_mean_of_each_images():
 
 
 def test_weight_schedule_follows_the_paper():
-    cfg = make_config("water")
+    from gf_core.losses import TABLE1_WEIGHTS
+    from gf_core.recon_config import LossConfig
+
+    assert all(getattr(LossConfig(), k) == v for k, v in TABLE1_WEIGHTS.items())  # the defaults are Table 1's
+    cfg = make_config("water", overrides={"loss": dict(TABLE1_WEIGHTS)})  # (the water preset lowers lambda_a, lambda_v)
     w1 = loss_weights(cfg, 1, 1.0)
     assert w1["density"] == 0 and w1["aniso"] == pytest.approx(0.01) and w1["volume"] == pytest.approx(0.01)
     assert loss_weights(cfg, 2, 0.0)["density"] == 0.0
