@@ -7,6 +7,12 @@ parameter groups, and prints training and held-out PSNR as it goes. Used for BEN
 
     python scripts/refit_frame.py RUN/recon.h5 DATASET 0.6 means,log_scales,quats 400
     groups: means, log_scales, quats, opacity, sh  (or "all")
+
+With GROUPS = "trainer" it runs the trainer's own phase-3 step instead (every loss term at its
+final weight, the trainer's rates, residuals included), every draw at that frame, on the water
+preset changed by any section.key=value arguments after ITERS (which term holds a frame back?):
+
+    python scripts/refit_frame.py RUN/recon.h5 DATASET 0.6 trainer 400 train.times_per_step=1 loss.aniso=0
 """
 
 import sys
@@ -18,8 +24,50 @@ from gf_core import losses as L
 from gf_core.data import load_dataset
 from gf_core.io import read_recon
 from gf_core.model import FluidModel
+from gf_core.recon_config import make_config
 from gf_core.reconstruct import composite, load_images
 from gf_core.render import render
+
+
+def trainer_steps(recon, dataset, when, iters, overrides):
+    """The trainer's phase-3 step at one frame, from RECON's particles and decoder."""
+    import tempfile
+    import tomllib
+    from pathlib import Path
+
+    from gf_core.reconstruct import Plateau, Trainer
+
+    over: dict = {}
+    for a in overrides:
+        key, value = a.split("=", 1)
+        sec, key = key.split(".")
+        over.setdefault(sec, {})[key] = tomllib.loads(f"x = {value}")["x"]
+    r = read_recon(recon)
+    cfg = make_config("water", overrides=over)
+    tr = Trainer(cfg, load_dataset(dataset), test_ds=load_dataset(dataset, split="test"),
+                 out=Path(tempfile.mkdtemp()), log=lambda *_: None)
+    tr.initialise()
+    tr.model = FluidModel.from_recon(r)
+    tr.spacing, tr.h = float(r.config.get("spacing", tr.spacing)), float(r.config.get("h", tr.h))
+    tr._make_optimizer()
+    tr.phase, tr.plateau = 3, Plateau(10 ** 9, 0.0)
+    t = float(tr.train.unique_times[np.argmin(np.abs(tr.train.unique_times - when))])
+    tr.sample_times = lambda progress: [t] * cfg.train.times_per_step
+
+    def psnr(imgs):
+        with torch.no_grad():
+            p = tr.model.at(t)
+            return np.mean([L.psnr(render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"],
+                                          imgs.cameras[i], imgs.background, sh_degree=tr.model.sh_degree).color,
+                                   composite(imgs.images[i], imgs.alphas[i], imgs.background))
+                            for i in imgs.at_time(t)])
+
+    print(f"t = {t:.4f} s, the trainer's phase-3 step {' '.join(overrides)}; start: train {psnr(tr.train):.2f} dB, "
+          f"held-out {psnr(tr.test):.2f} dB")
+    for it in range(1, iters + 1):
+        tr.step(1.0, 1.0)
+        if it % max(iters // 4, 1) == 0:
+            print(f"{it:5d} steps: train {psnr(tr.train):.2f} dB, held-out {psnr(tr.test):.2f} dB")
 
 
 def main(recon, dataset, when, groups, iters):
@@ -32,7 +80,9 @@ def main(recon, dataset, when, groups, iters):
     P = {"means": p["means"], "log_scales": p["scales"].log(), "quats": p["quats"],
          "opacity": torch.logit(p["opacities"].clamp(1e-4, 1 - 1e-4)), "sh": p["sh"]}
     P = {k: v.clone().requires_grad_() for k, v in P.items()}
-    rates = {"means": 1.6e-4 * m.bounds.extent, "log_scales": 5e-3, "quats": 1e-3, "opacity": 5e-2, "sh": 2.5e-3}
+    lr = make_config("water").lr  # the preset's phase-1 rates
+    rates = {"means": lr.means * m.bounds.extent, "log_scales": lr.log_scales, "quats": lr.quats,
+             "opacity": lr.logit_opacity, "sh": lr.sh_dc}
     names = list(rates) if groups == "all" else groups.split(",")
     opt = torch.optim.Adam([{"params": [P[k]], "lr": rates[k]} for k in names])
 
@@ -64,6 +114,9 @@ def main(recon, dataset, when, groups, iters):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 6:
+    if len(sys.argv) < 6 or (len(sys.argv) > 6 and sys.argv[4] != "trainer"):
         sys.exit(__doc__)
-    main(sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4], int(sys.argv[5]))
+    if sys.argv[4] == "trainer":
+        trainer_steps(sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[5]), sys.argv[6:])
+    else:
+        main(sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4], int(sys.argv[5]))
