@@ -39,7 +39,9 @@ smoothed image error (the splash after an impact is harder than the free fall be
 Decoder residuals (``decoder.residuals``, not in the paper; ``gf_core/temporal.py``): per-particle
 pose corrections at the training frames, trained from phase ``phases.residuals_from`` at the rates
 of the canonical means (undecayed), log-scales and quaternions times ``lr.residuals``. They give
-each frame's particles a direct path to the images that the shared MLP gives only slowly.
+each frame's particles a direct path to the images that the shared MLP gives only slowly. With
+``phases.freeze_decoder`` phase 3 trains only them and the canonical particles: theta and Phi keep
+what phase 2 left, and their output at each frame is computed once (``Decoder.freeze``).
 
 Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
 grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
