@@ -74,6 +74,7 @@ class LRConfig:
 class PhaseConfig:
     iterations: int = 6000         # total budget; phase caps are fractions of it
     fractions: list = field(default_factory=lambda: [0.2, 0.45, 0.35])
+    time_fractions: list = field(default_factory=list)  # with a time budget: shares of it ([] = as fractions)
     min_fraction: float = 0.25     # a phase runs at least this fraction of its cap
     plateau_window: int = 400      # iterations
     plateau_tol: float = 0.005     # relative improvement of the smoothed image loss
@@ -150,6 +151,10 @@ class ReconConfig:
             raise InputError(where, f"phases.iterations must be >= 1, got {ph.iterations}")
         if len(ph.fractions) != 3 or any(f < 0 for f in ph.fractions) or sum(ph.fractions) <= 0:
             raise InputError(where, f"phases.fractions must be 3 non-negative numbers, got {ph.fractions}")
+        if ph.time_fractions and (len(ph.time_fractions) != 3 or any(f < 0 for f in ph.time_fractions)
+                                  or sum(ph.time_fractions) <= 0):
+            raise InputError(where, "phases.time_fractions must be [] or 3 non-negative numbers, got "
+                                    f"{ph.time_fractions}")
         if self.density.h_factor <= 0 or self.density.k < 1 or self.density.refresh_every < 1:
             raise InputError(where, "density.h_factor > 0, density.k >= 1 and density.refresh_every >= 1 required")
         if self.train.times_per_step < 1 or self.train.views_per_step < 0:
@@ -160,7 +165,7 @@ class ReconConfig:
             raise InputError(where, f"phases.residuals_from must be 2 or 3, got {ph.residuals_from}")
         if ph.freeze_decoder and not self.decoder.residuals:
             raise InputError(where, "phases.freeze_decoder needs decoder.residuals = true (a frozen decoder "
-                                    "without residuals could not move the particles in phase 3)")
+                                    "without residuals could not move the particles in phase 3; set it to false)")
         if not 0 <= self.lr.residuals_beta1 < 1:
             raise InputError(where, f"lr.residuals_beta1 must be in [0, 1), got {self.lr.residuals_beta1}")
         if not 0 <= ph.error_sampling <= 1:
@@ -215,6 +220,8 @@ def make_config(preset: str | None = "water", config_file=None, overrides: dict 
     if preset:
         if preset not in PRESETS:
             raise InputError("reconstruct", f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
+        if preset != "water":  # honey and smoke are the water preset with some keys changed
+            _merge(cfg, load_toml(PRESET_DIR / "water.toml"), str(PRESET_DIR / "water.toml"))
         p = PRESET_DIR / f"{preset}.toml"
         _merge(cfg, load_toml(p), str(p))
     if config_file:

@@ -2,7 +2,8 @@
 ``temporal``), the losses (``losses``), densify/prune (``strategy``) and the renderer.
 
 Phases (each ends when its smoothed image loss stops improving -- the plateau test below -- or
-at its cap, a fraction of the iteration budget):
+at its cap, a fraction of the iteration budget, or with a time budget at its share of the seconds,
+``phases.time_fractions``):
 1. canonical frame only, 3DGS-style: lambda_d = 0, lambda_a and lambda_v at 10% of their final
    values; canonical particles only (no decoder).
 2. every frame: random (time, views) samples, the decoder on (theta at lr 1e-2, Phi at 1e-4, the
@@ -294,22 +295,31 @@ class Trainer:
                                      prune_max_scale=dc.prune_max_scale, max_particles=self.cfg.model.max_particles)
 
     # ---- phases ------------------------------------------------------------------------------------------
-    def phase_cap(self, phase: int) -> int:
-        ph = self.cfg.phases
-        fr = list(ph.fractions)
+    def _shares(self, fractions) -> list:
+        fr = [float(f) for f in fractions]
         if self.static:  # no dynamic phase: its share goes to the refinement phase
             fr = [fr[0], 0.5 * fr[1], fr[2] + 0.5 * fr[1]]
+        return fr
+
+    def phase_cap(self, phase: int) -> int:
+        ph = self.cfg.phases
+        fr = self._shares(ph.fractions)
         return int(round(ph.iterations * fr[phase - 1] / sum(fr)))
 
     def ramp_len(self, phase: int) -> int:
         return max(1, int(self.cfg.phases.min_fraction * self.phase_cap(phase)))
 
     def phase_deadline(self, phase: int) -> float:
-        """With a time budget: the wall-clock second by which ``phase`` must end (the budget split
-        like the iterations, time a phase leaves unused going to the next); inf without one."""
+        """With a time budget: the wall-clock second by which ``phase`` must end (the budget split by
+        ``phases.time_fractions``, else like the iterations; time a phase leaves unused goes to the
+        next); inf without one. A phase-1 step renders one frame and skips the decoder, so it costs
+        a fraction of a later one: its share of the seconds is smaller than its share of the steps."""
         budget = self.cfg.train.time_budget_s
         if budget <= 0:
             return math.inf
+        if self.cfg.phases.time_fractions:
+            fr = self._shares(self.cfg.phases.time_fractions)
+            return budget * sum(fr[:phase]) / sum(fr)
         caps = [self.phase_cap(k) for k in (1, 2, 3)]
         return budget * sum(caps[:phase]) / max(sum(caps), 1)
 

@@ -13,7 +13,7 @@ from gf_core.errors import InputError
 from gf_core.evaluate import evaluate
 from gf_core.io import read_recon
 from gf_core.model import FluidModel
-from gf_core.recon_config import make_config
+from gf_core.recon_config import ReconConfig, make_config
 from gf_core.reconstruct import ReconstructionError, Trainer, loss_weights, reconstruct
 from gf_core.synthetic import falling_blob, splat_dataset
 from gf_core.temporal import Decoder, DecoderConfig, TimeMap
@@ -119,6 +119,22 @@ def test_frozen_decoder_leaves_theta_and_phi_as_phase_2_left_them(blob, tmp_path
     assert not torch.equal(seen["res"], dec.residual_dp)  # the residuals did train in phase 3
     with pytest.raises(InputError, match="freeze_decoder needs decoder.residuals"):
         small_config(phases={"freeze_decoder": True}, decoder={"residuals": False}).validate()
+
+
+def test_a_time_budget_is_split_by_time_fractions(blob, tmp_path):
+    """phases.time_fractions: with a time budget the phases end at these shares of the seconds;
+    [] splits the seconds like the iterations (phases.fractions)."""
+    cfg = small_config(phases={"time_fractions": [0.1, 0.5, 0.4]}, train={"time_budget_s": 100.0})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "a", log=quiet)
+    assert [tr.phase_deadline(k) for k in (1, 2, 3)] == pytest.approx([10.0, 60.0, 100.0])
+    assert tr.phase_cap(1) == round(900 * 0.2)  # the iteration caps keep phases.fractions
+    cfg = small_config(phases={"time_fractions": [], "fractions": [0.2, 0.45, 0.35]}, train={"time_budget_s": 100.0})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "b", log=quiet)
+    assert [tr.phase_deadline(k) for k in (1, 2, 3)] == pytest.approx([20.0, 65.0, 100.0])
+    cfg.train.time_budget_s = 0.0
+    assert tr.phase_deadline(1) == math.inf
+    with pytest.raises(InputError, match="time_fractions must be"):
+        small_config(phases={"time_fractions": [0.5, 0.5]}).validate()
 
 
 def test_time_outside_the_clip_is_clamped_with_a_warning_or_refused():
@@ -445,6 +461,11 @@ def test_config_errors_name_the_key(tmp_path):
         make_config("water", bad).validate()
     for preset in ("water", "honey", "smoke"):
         assert make_config(preset).validate()
+    # honey and smoke are the water preset with some keys changed
+    water, honey, smoke = make_config("water"), make_config("honey"), make_config("smoke")
+    assert honey.loss.aniso == smoke.loss.aniso == water.loss.aniso != ReconConfig().loss.aniso
+    assert honey.decoder.residuals and smoke.phases.freeze_decoder == water.phases.freeze_decoder
+    assert honey.model.init_particles != water.model.init_particles and smoke.model.sh_degree == 0
 
 
 def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
