@@ -177,22 +177,6 @@ def _to_camera(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
     return means @ viewmat[:, :3, :3].transpose(1, 2) + viewmat[:, None, :3, 3]
 
 
-def _silhouette_at(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor):
-    """The silhouette distance at each particle's projection in each of I images: means (I, N, 3),
-    dist (I, H, W), viewmat (I, 4, 4), intr (I, 4) -> ((I, N) distances, (I, N) in front of the camera)."""
-    t = _to_camera(means, viewmat)
-    z = t[..., 2]
-    front = z > 1e-6
-    zs = torch.where(front, z, torch.ones_like(z))
-    u = intr[:, 0:1] * t[..., 0] / zs + intr[:, 2:3]
-    v = intr[:, 1:2] * t[..., 1] / zs + intr[:, 3:4]
-    H, W = dist.shape[-2:]
-    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[:, None]  # (I, 1, N, 2); pixel edges at +-1
-    d = torch.nn.functional.grid_sample(dist[:, None], grid, mode="bilinear", padding_mode="border",
-                                        align_corners=False)[:, 0, 0]
-    return d, front
-
-
 def hull_distance(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
     """Mean over particles of the silhouette distance (``silhouette_distance``) at each particle's
     projection: a pull towards the fluid's silhouette that reaches particles far outside it (the
@@ -204,34 +188,18 @@ def hull_distance(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor
     single = means.dim() == 2
     if single:
         means, dist, viewmat, intr = means[None], dist[None], viewmat[None], intr[None]
-    d, front = _silhouette_at(means, dist, viewmat, intr)
+    t = _to_camera(means, viewmat)
+    z = t[..., 2]
+    front = z > 1e-6
+    zs = torch.where(front, z, torch.ones_like(z))
+    u = intr[:, 0:1] * t[..., 0] / zs + intr[:, 2:3]
+    v = intr[:, 1:2] * t[..., 1] / zs + intr[:, 3:4]
+    H, W = dist.shape[-2:]
+    grid = torch.stack([2 * u / W - 1, 2 * v / H - 1], -1)[:, None]  # (I, 1, N, 2); pixel edges at +-1
+    d = torch.nn.functional.grid_sample(dist[:, None], grid, mode="bilinear", padding_mode="border",
+                                        align_corners=False)[:, 0, 0]
     out = torch.where(front, d, torch.zeros_like(d)).mean(-1)
     return out[0] if single else out
-
-
-@torch.no_grad()
-def inside_hull(means: torch.Tensor, dist: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
-    """(N,) bool: the particles (N, 3) whose projection lies on the fluid (within half a pixel of
-    it) in every one of the I images (dist (I, H, W) from ``silhouette_distance``, viewmat
-    (I, 4, 4), intr (I, 4)) and in front of each camera: inside the visual hull of those views."""
-    d, front = _silhouette_at(means[None].expand(dist.shape[0], -1, -1), dist, viewmat, intr)
-    return ((d * dist.shape[-1] <= 0.5) & front).all(0)
-
-
-def potential_energy(positions: torch.Tensor, up: torch.Tensor, floor: float, spacing: float,
-                     gate: torch.Tensor | None = None) -> torch.Tensor:
-    """Not in the paper: the particles' potential energy per unit mass and g, as the mean over all
-    N particles of their height above ``floor`` along ``up`` (unit vector), in particle spacings;
-    with ``gate`` (N,) bool only the gated particles count (the others add 0). Where the views
-    cannot tell how high fluid is (a thin sheet seen from above: its silhouettes hold anything
-    between it and the cameras), this prefers the lowest configuration that explains the images:
-    fluid settles under gravity, and with Eq. 5 it spreads at even density instead of piling up.
-    The trainer gates it with ``inside_hull``: gravity must not pull a particle out of the fluid's
-    silhouettes (a faint particle there costs the images little)."""
-    height = (positions @ up - floor) / spacing
-    if gate is not None:
-        height = torch.where(gate, height, torch.zeros_like(height))
-    return height.mean()
 
 
 def silhouette_coverage(means: torch.Tensor, pixels: torch.Tensor, viewmat: torch.Tensor, intr: torch.Tensor,
@@ -267,4 +235,4 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
 
 __all__ = ["TABLE1_WEIGHTS", "l1", "blur", "ssim", "d_ssim", "poly6", "sph_density", "sph_density_knn", "density_uniformity",
            "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency",
-           "silhouette_distance", "least_motion", "potential_energy", "inside_hull", "hull_distance", "silhouette_coverage", "psnr"]
+           "silhouette_distance", "least_motion", "hull_distance", "silhouette_coverage", "psnr"]

@@ -43,8 +43,6 @@ class LossConfig:
     color: float = TABLE1_WEIGHTS["color"]
     hull: float = 1.0              # silhouette pull (datasets with alpha; not in the paper), see reconstruct.py
     motion: float = 0.0            # least motion between the step's times (not in the paper), see losses.py
-    gravity: float = 0.0           # potential energy: mean height above the scene box's floor (not in the paper)
-    up: list = field(default_factory=lambda: [0.0, 0.0, 1.0])  # the world's up direction (against gravity)
     background: str = "random"     # random | black | white | dataset (see reconstruct.py)
     blur_start: float = 0.02       # phase 2 starts comparing images blurred by this x image width (sigma)
 
@@ -141,13 +139,10 @@ class ReconConfig:
             raise InputError(where, f"model.init_opacity must be in (0, 1), got {m.init_opacity}")
         if lo.background not in ("random", "black", "white", "dataset"):
             raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
-        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "motion", "gravity"):
+        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "motion"):
             v = getattr(lo, k)
             if not (isinstance(v, (int, float)) and v >= 0):
                 raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")
-        if not (isinstance(lo.up, list) and len(lo.up) == 3 and all(isinstance(x, (int, float)) for x in lo.up)
-                and sum(x * x for x in lo.up) > 0):
-            raise InputError(where, f"loss.up must be 3 numbers, not all 0, got {lo.up!r}")
         if not 0 <= lo.blur_start < 0.5:
             raise InputError(where, f"loss.blur_start must be in [0, 0.5), got {lo.blur_start}")
         if lo.rgb + lo.ssim <= 0:

@@ -158,14 +158,11 @@ def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
     r = ph.phase1_reg
     if phase == 1:
         w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
-        phys = 0.0  # the schedule of the physical priors (density, gravity) as a fraction of their final weights
     elif phase == 2:
-        w.update(aniso=r * lo.aniso, volume=r * lo.volume)
-        phys = ph.phase2_density * ramp
+        w.update(density=ph.phase2_density * lo.density * ramp, aniso=r * lo.aniso, volume=r * lo.volume)
     else:
-        w.update(aniso=lo.aniso * (r + (1 - r) * ramp), volume=lo.volume * (r + (1 - r) * ramp))
-        phys = ph.phase2_density + (1 - ph.phase2_density) * ramp
-    w.update(density=phys * lo.density, gravity=phys * lo.gravity)
+        w.update(density=lo.density * (ph.phase2_density + (1 - ph.phase2_density) * ramp),
+                 aniso=lo.aniso * (r + (1 - r) * ramp), volume=lo.volume * (r + (1 - r) * ramp))
     return w
 
 
@@ -217,11 +214,7 @@ class Trainer:
         self.static = len(times) == 1
         self.dataset_meta = dict(train_ds.meta)
         self._sil, self._camt = {}, {}  # per training image: silhouette tensors, camera tensors
-        self._hull_all = {}  # per frame time: all its views' silhouette distances and cameras (loss.gravity)
         self._train_ds = train_ds
-        if cfg.loss.gravity > 0 and any(a is None for a in self.train.alphas):
-            raise InputError(train_ds.root, "loss.gravity needs alpha masks in every training image (the term acts "
-                                            "only inside the fluid's silhouettes); set loss.gravity = 0")
         tau0 = cfg.decoder.canonical_time
         t_target = self.time_map.t_min + tau0 * self.time_map.duration
         self.t_canon = float(times[np.argmin(np.abs(times - t_target))])
@@ -267,7 +260,6 @@ class Trainer:
                                         None if self.train.alphas[i] is None else self.train.alphas[i].cpu().numpy())
                                        for i in canon], self.channels)
         bounds = Bounds.for_box(lo, hi, self.spacing)
-        self._set_up(bounds)
         self.model = FluidModel.from_points(
             torch.as_tensor(pts, dtype=torch.float32, device=self.device), radius=mc.init_scale * self.spacing,
             color=color, opacity=mc.init_opacity, sh_degree=mc.sh_degree, channels=self.channels, bounds=bounds,
@@ -278,13 +270,6 @@ class Trainer:
                  f"{np.round(lo, 3).tolist()}..{np.round(hi, 3).tolist()}; fluid volume {volume:.3g} m^3, "
                  f"spacing {self.spacing:.4g} m, h = {self.h:.4g} m; "
                  f"{'static scene (no decoder)' if self.static else f'{len(self.train.unique_times)} times'}")
-
-    def _set_up(self, bounds: Bounds) -> None:
-        """The unit up vector and the domain's lowest point along it, for the potential energy term."""
-        up = np.asarray(self.cfg.loss.up, dtype=np.float64)
-        up = up / np.linalg.norm(up)
-        self.up = torch.as_tensor(up, dtype=torch.float32, device=self.device)
-        self.floor = float(np.minimum(np.asarray(bounds.lo) * up, np.asarray(bounds.hi) * up).sum())
 
     def knots(self) -> list[float] | None:
         """The decoder residuals' knots: the training frames' tau (None without residuals)."""
@@ -464,20 +449,6 @@ class Trainer:
                 total = total + L.silhouette_coverage(means, pix, vm, K, width).sum()
         return total
 
-    def _inside_hull(self, t, means: torch.Tensor) -> torch.Tensor:
-        """(N,) bool: particles inside the visual hull of every training view of time t (the gate of
-        the potential energy term; ``validate_gravity`` checks that the frames have alpha masks)."""
-        if t not in self._hull_all:
-            idx = [i for i in self.train.at_time(t) if self.train.alphas[i] is not None]
-            cams = [self._cam_tensors(i) for i in idx]
-            sizes = {tuple(self.train.alphas[i].shape) for i in idx}
-            if len(sizes) != 1:
-                raise InputError(self._train_ds.root, f"loss.gravity needs one image size per frame time, got {sizes}")
-            self._hull_all[t] = (torch.stack([self._silhouette(i)[0] for i in idx]), torch.stack([c[0] for c in cams]),
-                                 torch.stack([c[1] for c in cams]))
-        dist, vm, K = self._hull_all[t]
-        return L.inside_hull(means.detach(), dist, vm, K)
-
     def _cam_tensors(self, i: int):
         if i not in self._camt:
             self._camt[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
@@ -546,15 +517,6 @@ class Trainer:
             if w["density"] > 0:
                 nbr = self._neighbors(float(t) if use_dec else "canonical", p["means"])
                 terms_t["density"] = w["density"] * L.density_uniformity(L.sph_density_knn(p["means"], nbr, self.h))
-            dec = self.model.decoder
-            if w["gravity"] > 0 and use_dec and dec.knots is not None and self.phase >= self.cfg.phases.residuals_from:
-                # through this frame's position residual only: the pull of one frame must not move the
-                # canonical particles or the shared decoder, and so every other frame
-                tau = torch.full((1,), self.time_map.tau(float(t)), dtype=p["means"].dtype, device=self.device)
-                r = dec._residual_at(tau, "dp")[0][0]
-                pos = p["means"].detach() + (r - r.detach())
-                gate = self._inside_hull(t, p["means"]) & (p["means"].detach() @ self.up > self.floor + 1e-3 * self.spacing)
-                terms_t["gravity"] = w["gravity"] * L.potential_energy(pos, self.up, self.floor, self.spacing, gate=gate)
             if w["volume"] > 0:
                 terms_t["volume"] = w["volume"] * L.volume_consistency(p["scales"])
             if w["aniso"] > 0:
@@ -700,7 +662,6 @@ class Trainer:
         self.model = FluidModel(P["means"], P["log_scales"], P["quats"], P["logit_opacity"], sh, bounds=bounds,
                                 time_map=self.time_map, decoder=dec)
         self.spacing, self.h, self.volume = st["spacing"], st["h"], st["volume"]
-        self._set_up(bounds)
         self.box_source, self.init_source = st["box_source"], st["init_source"]
         self._make_optimizer()
         self.opt.load_state_dict(st["optimizer"])

@@ -238,31 +238,6 @@ def test_silhouette_terms_batched_equal_one_image_at_a_time():
     assert torch.allclose(sc, ref.detach(), rtol=1e-10) and torch.allclose(many.grad, ref_in.grad, rtol=1e-8, atol=1e-14)
 
 
-def test_potential_energy_acts_only_inside_the_visual_hull():
-    """The gravity term: mean height in spacings above the floor along up; its gate keeps the
-    particles whose projection is on the fluid in every view and in front of every camera."""
-    from gf_core.camera import Camera
-
-    pos = torch.tensor([[0.0, 0.0, 0.3], [0.0, 0.0, 0.9], [0.4, 0.0, 0.3], [0.0, -2.5, 0.3]], requires_grad=True)
-    up = torch.tensor([0.0, 0.0, 1.0])
-    e = L.potential_energy(pos, up, floor=0.1, spacing=0.1)
-    assert float(e.detach()) == pytest.approx((2 + 8 + 2 + 2) / 4)
-    alpha = torch.zeros(24, 32)
-    alpha[6:18, 12:20] = 1.0  # the fluid: a small block in the middle of each image
-    cams = [Camera.look_at((0.0, -2.0, 0.3), (0, 0, 0.3), (0, 0, 1), fx=40.0, width=32, height=24),
-            Camera.look_at((2.0, 0.0, 0.3), (0, 0, 0.3), (0, 0, 1), fx=40.0, width=32, height=24)]
-    vm_k = [c.to_torch(dtype=torch.float32) for c in cams]
-    dist = torch.stack([L.silhouette_distance(alpha)] * 2)
-    gate = L.inside_hull(pos, dist, torch.stack([v for v, _ in vm_k]), torch.stack([k for _, k in vm_k]))
-    # the centre is inside; 0.4 m to the side falls off camera 0's block; behind camera 0 is out;
-    # 0.6 m up is 12 px up in both images: off the block (rows 6-18 around the centre row 12)
-    assert gate.tolist() == [True, False, False, False]
-    g = L.potential_energy(pos, up, floor=0.1, spacing=0.1, gate=gate)
-    assert float(g.detach()) == pytest.approx(2 / 4)
-    g.backward()
-    assert pos.grad[0].tolist() == pytest.approx([0, 0, 10 / 4]) and float(pos.grad[1:].abs().sum()) == 0.0
-
-
 def test_image_losses_of_a_batch_are_the_mean_of_each_images():
     """The trainer's image loss takes the step's images as one batch: L1, SSIM and the blur give
     the mean of the per-image values."""
@@ -502,7 +477,6 @@ def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
     orig_vol = L.volume_consistency
     monkeypatch.setattr(L, "volume_consistency", lambda s: called.__setitem__("vol", called["vol"] + 1) or orig_vol(s))
     monkeypatch.setattr(L, "least_motion", lambda *a: called.__setitem__("motion", 1))  # weight 0 by default
-    monkeypatch.setattr(L, "inside_hull", lambda *a: called.__setitem__("gravity", 1))  # weight 0 by default
     cfg = small_config(phases={"iterations": 80}, loss={"density": 0.0, "volume": 0.0})
     reconstruct(load_dataset(blob), tmp_path / "z", cfg, log=quiet)
     assert called == {"knn": 0, "vol": 0}
