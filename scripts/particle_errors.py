@@ -17,6 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from gf_core.io import read_recon, read_sim  # noqa: E402
+from gf_core.metrics import nearest_distance  # noqa: E402
 from gf_core.model import FluidModel  # noqa: E402
 
 model = FluidModel.from_recon(read_recon(sys.argv[1]))
@@ -30,8 +31,9 @@ for row, t in enumerate(times):
     with torch.no_grad():
         st = model.at(t)
     p, op = st["means"].numpy(), st["opacities"].numpy().ravel()
-    d = cKDTree(g).query(p)[0] / sp
-    dg = cKDTree(p).query(g)[0] / sp
+    pt, gt = torch.as_tensor(p, dtype=torch.float64), torch.as_tensor(g, dtype=torch.float64)
+    d = nearest_distance(pt, gt, sp).numpy() / sp  # as gf-cli evaluate measures them
+    dg = nearest_distance(gt, pt, sp).numpy() / sp
     far = d > 2
     crowd = np.array([len(x) for x in cKDTree(p).query_ball_point(p, sp)]) - 1
     print(f"t = {t:g} s (true frame {f}): recon->true {d.mean():.3f}, true->recon {dg.mean():.3f} spacings; "
