@@ -227,6 +227,47 @@ def silhouette_coverage(means: torch.Tensor, pixels: torch.Tensor, viewmat: torc
     return out[0] if single else out
 
 
+def floor_coverage(means: torch.Tensor, samples: torch.Tensor, spacing: float) -> torch.Tensor:
+    """Not in the paper: mean over floor points ``samples`` (M, 3) of the distance, in particle
+    spacings, to the nearest particle of ``means`` (N, 3), beyond one spacing (a sheet's particles
+    lie within about half a spacing of the floor points; only holes pull). The samples are the points of the scene
+    box's floor that every training view of the frame sees inside the fluid's silhouette (see
+    ``Trainer._floor_samples``): there the fluid rests on the floor. Views that look down at a
+    spreading sheet cannot tell it from fluid held higher up along their rays (a mound over the
+    middle, with the far side of the tank left empty); this pulls the nearest particles onto the
+    floor where the silhouettes say the sheet is. The nearest particle is found without gradient,
+    the distance to it carries it."""
+    if samples.shape[0] == 0 or means.shape[0] == 0:
+        return means.sum() * 0.0
+    with torch.no_grad():
+        j = torch.cdist(samples, means.detach()).argmin(-1)
+    return torch.relu((samples - means[j]).norm(dim=-1) / spacing - 1.0).mean()
+
+
+@torch.no_grad()
+def unsupported(positions: torch.Tensor, idx: torch.Tensor, spacing: float, floor: float) -> torch.Tensor:
+    """(N,) bool: particles (N, 3) with no neighbour (``idx`` (N, K), -1 = none, as
+    ``neighbors.knn`` returns) below them within a 45-degree cone at least half a spacing lower,
+    and more than one spacing above ``floor`` (gravity along -z): fluid held up by nothing."""
+    z = positions[:, 2]
+    ok = idx >= 0
+    q = positions[idx.clamp_min(0)]  # (N, K, 3)
+    dz = z[:, None] - q[..., 2]
+    dh = (positions[:, None, :2] - q[..., :2]).norm(dim=-1)
+    below = ok & (dz > 0.5 * spacing) & (dh < dz)
+    return ~below.any(1) & (z > floor + spacing)
+
+
+def settling(positions: torch.Tensor, gate: torch.Tensor, floor: float, spacing: float) -> torch.Tensor:
+    """Not in the paper: potential energy of the ``gate``d particles (N,) bool, their height above
+    ``floor`` in particle spacings summed over them and divided by all N (gravity along -z). The
+    trainer gates it to fluid that hangs unsupported (``unsupported``) over a wet floor (where
+    ``floor_coverage``'s points say the fluid rests on the floor): views looking down at a sheet
+    cannot tell it from fluid held higher along their rays, but fluid cannot hover over a pool."""
+    height = (positions[:, 2] - floor) / spacing
+    return torch.where(gate, height, torch.zeros_like(height)).mean()
+
+
 # ---- metrics shared with evaluation ---------------------------------------------------------------
 def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
     mse = float(((pred.detach() - target.detach()) ** 2).mean())
@@ -235,4 +276,4 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
 
 __all__ = ["TABLE1_WEIGHTS", "l1", "blur", "ssim", "d_ssim", "poly6", "sph_density", "sph_density_knn", "density_uniformity",
            "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency",
-           "silhouette_distance", "least_motion", "hull_distance", "silhouette_coverage", "psnr"]
+           "silhouette_distance", "least_motion", "hull_distance", "silhouette_coverage", "floor_coverage", "unsupported", "settling", "psnr"]

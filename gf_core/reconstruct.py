@@ -31,6 +31,15 @@ plus the mean distance from 256 random mask pixels to the nearest projection
 only through the pixels it covers; this term reaches particles and uncovered fluid at any
 distance, which large motions need (measured in BENCHMARKS.md, "Reconstruction").
 
+A fluid on the floor (not in the paper; with alpha and a scene box from the dataset or config,
+gravity along -z): views that look down at a spreading sheet cannot tell it from fluid held higher
+up along their rays, and the particles of a splash stay in a mound over the middle of the tank
+while the far side stays empty. The floor points that every view of a frame sees inside the fluid
+(``_floor_samples``) mark where the fluid rests on the floor; ``loss.floor`` pulls the nearest
+particle into any of them left without one (``losses.floor_coverage``), and ``loss.settle`` pulls
+down the particles that hang over them with no particle below (``losses.settling``), through that
+frame's position residual only, so that no pull reaches the frames where the fluid falls free.
+
 Coarse to fine in time and space (phase 2): the times drawn widen from the canonical one to the
 whole clip over ``phases.time_curriculum`` of the phase, and the L1 term compares images blurred
 with a Gaussian of ``loss.blur_start`` x width that shrinks to none as the window widens. Once the
@@ -77,7 +86,7 @@ from .model import Bounds, FluidModel
 from .neighbors import knn
 from .recon_config import ReconConfig, from_dict
 from .render import render
-from .scene_init import carve, mean_foreground_color, random_in_box, scene_box, spacing_for
+from .scene_init import carve, in_hull, mean_foreground_color, random_in_box, scene_box, spacing_for
 from .strategy import DensifyPrune, ParticleOptimizer
 from .temporal import Decoder, TimeMap
 
@@ -154,7 +163,7 @@ def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
     """The weights of Eq. 11 in ``phase`` (1-3) at ramp progress ``ramp`` in [0, 1]."""
     lo, ph = cfg.loss, cfg.phases
     w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color, "hull": lo.hull,
-         "motion": lo.motion if phase > 1 else 0.0}
+         "floor": lo.floor, "settle": lo.settle, "motion": lo.motion if phase > 1 else 0.0}
     r = ph.phase1_reg
     if phase == 1:
         w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
@@ -214,6 +223,7 @@ class Trainer:
         self.static = len(times) == 1
         self.dataset_meta = dict(train_ds.meta)
         self._sil, self._camt = {}, {}  # per training image: silhouette tensors, camera tensors
+        self._floor = {}  # per training time: floor points inside every view's silhouette (loss.floor)
         self._train_ds = train_ds
         tau0 = cfg.decoder.canonical_time
         t_target = self.time_map.t_min + tau0 * self.time_map.duration
@@ -242,6 +252,11 @@ class Trainer:
         canon = self.train.at_time(self.t_canon)
         lo, hi, src = scene_box(mc.scene_box, self._train_ds, [self.train.cameras[i] for i in canon])
         self.box_source = src
+        if (cfg.loss.floor > 0 or cfg.loss.settle > 0) and src == "cameras":
+            self.log("loss.floor and loss.settle are off: the scene box comes from the cameras, so there is no "
+                     "known floor (give model.scene_box, or a dataset scene_box)")
+        if cfg.loss.settle > 0 and not self.static and not cfg.decoder.residuals:
+            self.log("loss.settle is off: it acts through the decoder residuals (decoder.residuals = false)")
         n0 = min(mc.init_particles, mc.max_particles)
         have_alpha = all(self.train.alphas[i] is not None for i in canon)
         if mc.init == "carve" and have_alpha:
@@ -449,6 +464,64 @@ class Trainer:
                 total = total + L.silhouette_coverage(means, pix, vm, K, width).sum()
         return total
 
+    FLOOR_SAMPLES = 256  # floor points per decoded time and step for the floor term
+
+    def _floor_samples(self, t: float) -> torch.Tensor:
+        """(M, 3) floor points of training time ``t`` for ``losses.floor_coverage``, a random
+        FLOOR_SAMPLES of them: a grid at the particle spacing on the scene box's floor (lowest z,
+        gravity along -z as in the simulators), half a spacing up, kept where every training view of
+        that time that sees the point sees fluid (the alpha masks at model.carve_threshold). None
+        where the frame's fluid does not reach the floor in every view (a falling drop) or a view
+        has no alpha."""
+        if t not in self._floor:
+            idx = self.train.at_time(t)
+            pts = None
+            if idx and all(self.train.alphas[i] is not None for i in idx):
+                lo, hi, g = np.asarray(self.model.bounds.lo), np.asarray(self.model.bounds.hi), self.spacing
+                xs, ys = np.arange(lo[0] + g / 2, hi[0], g), np.arange(lo[1] + g / 2, hi[1], g)
+                X, Y = np.meshgrid(xs, ys, indexing="ij")
+                P = np.stack([X.ravel(), Y.ravel(), np.full(X.size, lo[2] + 0.5 * g)], 1)
+                P = P[in_hull(P, [(self.train.cameras[i], self.train.alphas[i]) for i in idx],
+                              self.cfg.model.carve_threshold)]
+                if len(P):
+                    pts = torch.as_tensor(P, dtype=torch.float32, device=self.device)
+            self._floor[t] = pts
+        pts = self._floor[t]
+        if pts is None or len(pts) <= self.FLOOR_SAMPLES:
+            return pts
+        pick = torch.as_tensor(self.np_rng.choice(len(pts), self.FLOOR_SAMPLES, replace=False), device=self.device)
+        return pts[pick]
+
+    def _settle_term(self, t: float, means: torch.Tensor, nbr: torch.Tensor) -> torch.Tensor:
+        """losses.settling at training time ``t`` through that frame's position residual only (a
+        frame's pull must not move the canonical particles or the decoder, and with them the frames
+        where the fluid falls free), gated to the particles that hang unsupported over the wet part
+        of the floor (within a spacing of the floor term's points). A frame whose fluid does not
+        reach the floor in every view gets nothing."""
+        zero = means.sum() * 0.0
+        if self._floor_samples(t) is None:
+            return zero
+        pts = self._floor[t]
+        dec = self.model.decoder
+        tau = torch.full((1,), self.time_map.tau(t), dtype=means.dtype, device=self.device)
+        r = dec._residual_at(tau, "dp")[0][0]
+        pos = means.detach() + (r - r.detach())
+        floor = float(self.model.bounds.lo[2])
+        with torch.no_grad():
+            lo, g = torch.as_tensor(self.model.bounds.lo[:2], dtype=means.dtype, device=self.device), self.spacing
+            # which floor cells are wet: the floor points sit at cell centres of a grid of size g
+            cell = lambda xy: torch.floor((xy - lo) / g).long()  # noqa: E731
+            c = cell(pts[:, :2])
+            nx, ny = int(c[:, 0].max()) + 2, int(c[:, 1].max()) + 2
+            wet = torch.zeros(nx, ny, dtype=torch.bool, device=self.device)
+            wet[c[:, 0], c[:, 1]] = True
+            q = cell(means[:, :2].detach())
+            inside = (q[:, 0] >= 0) & (q[:, 0] < nx) & (q[:, 1] >= 0) & (q[:, 1] < ny)
+            over = torch.zeros(len(means), dtype=torch.bool, device=self.device)
+            over[inside] = wet[q[inside, 0], q[inside, 1]]
+            gate = over & L.unsupported(means.detach(), nbr, self.spacing, floor)
+        return L.settling(pos, gate, floor, self.spacing)
+
     def _cam_tensors(self, i: int):
         if i not in self._camt:
             self._camt[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
@@ -514,9 +587,19 @@ class Trainer:
                     hull_items.append((i, p["means"], int(self.np_rng.integers(n_pix)) if n_pix else 0))
                     reg.setdefault("hull", 0.0)  # computed after the loop, for all images at once
             terms_t = {}
-            if w["density"] > 0:
+            dec = self.model.decoder
+            settle = w["settle"] > 0 and use_dec and self.box_source != "cameras" and dec.knots is not None \
+                and self.phase >= self.cfg.phases.residuals_from
+            if w["density"] > 0 or settle:
                 nbr = self._neighbors(float(t) if use_dec else "canonical", p["means"])
+            if settle:
+                terms_t["settle"] = w["settle"] * self._settle_term(float(t), p["means"], nbr)
+            if w["density"] > 0:
                 terms_t["density"] = w["density"] * L.density_uniformity(L.sph_density_knn(p["means"], nbr, self.h))
+            if w["floor"] > 0 and self.box_source != "cameras":
+                fs = self._floor_samples(float(t))
+                if fs is not None:
+                    terms_t["floor"] = w["floor"] * L.floor_coverage(p["means"], fs, self.spacing)
             if w["volume"] > 0:
                 terms_t["volume"] = w["volume"] * L.volume_consistency(p["scales"])
             if w["aniso"] > 0:

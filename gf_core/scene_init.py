@@ -54,6 +54,26 @@ def scene_box(cfg_box, dataset, cameras: list[Camera]) -> tuple[np.ndarray, np.n
     return lo, hi, "cameras"
 
 
+def in_hull(P: np.ndarray, views: list[tuple[Camera, torch.Tensor]], threshold: float = 0.5) -> np.ndarray:
+    """(M,) bool: which points P (M, 3) are inside the visual hull of the masks ``views``
+    [(camera, alpha (H, W))]: seen by at least one view, and on the fluid (alpha >= threshold) in
+    every view that sees them."""
+    inside = np.ones(len(P), bool)
+    seen = np.zeros(len(P), bool)
+    for cam, alpha in views:
+        a = alpha.detach().cpu().numpy() if isinstance(alpha, torch.Tensor) else np.asarray(alpha)
+        uv, z = cam.project(P)
+        ok = (z > cam.near) & np.isfinite(uv).all(-1)
+        col = np.floor(np.nan_to_num(uv[:, 0], nan=-1)).astype(np.int64)
+        row = np.floor(np.nan_to_num(uv[:, 1], nan=-1)).astype(np.int64)
+        ok &= (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        seen |= ok
+        val = np.zeros(len(P))
+        val[ok] = a[row[ok], col[ok]]
+        inside &= ~ok | (val >= threshold)
+    return inside & seen
+
+
 def carve(lo, hi, views: list[tuple[Camera, torch.Tensor]], n: int, *, threshold: float = 0.5,
           seed: int = 0, max_candidates: int = 4_000_000) -> tuple[np.ndarray, float]:
     """``n`` points inside the visual hull of the masks ``views`` [(camera, alpha (H, W))], and
@@ -66,21 +86,7 @@ def carve(lo, hi, views: list[tuple[Camera, torch.Tensor]], n: int, *, threshold
     while tried < max_candidates:
         P = lo + (hi - lo) * rng.random((batch, 3))
         tried += batch
-        inside = np.ones(batch, bool)
-        seen = np.zeros(batch, bool)
-        for cam, alpha in views:
-            a = alpha.detach().cpu().numpy() if isinstance(alpha, torch.Tensor) else np.asarray(alpha)
-            uv, z = cam.project(P)
-            ok = (z > cam.near) & np.isfinite(uv).all(-1)
-            col = np.floor(np.nan_to_num(uv[:, 0], nan=-1)).astype(np.int64)
-            row = np.floor(np.nan_to_num(uv[:, 1], nan=-1)).astype(np.int64)
-            ok &= (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-            seen |= ok
-            val = np.zeros(batch)
-            val[ok] = a[row[ok], col[ok]]
-            inside &= ~ok | (val >= threshold)
-        inside &= seen
-        kept.append(P[inside])
+        kept.append(P[in_hull(P, views, threshold)])
         if sum(k.shape[0] for k in kept) >= n:
             break
     pts = np.concatenate(kept, 0)
