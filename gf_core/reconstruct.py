@@ -223,7 +223,7 @@ class Trainer:
         self.static = len(times) == 1
         self.dataset_meta = dict(train_ds.meta)
         self._sil, self._camt = {}, {}  # per training image: silhouette tensors, camera tensors
-        self._floor = {}  # per training time: floor points inside every view's silhouette (loss.floor)
+        self._floor = {}  # per training time: the wet floor (_floor_points; loss.floor, loss.settle)
         self._train_ds = train_ds
         tau0 = cfg.decoder.canonical_time
         t_target = self.time_map.t_min + tau0 * self.time_map.duration
@@ -466,61 +466,70 @@ class Trainer:
 
     FLOOR_SAMPLES = 256  # floor points per decoded time and step for the floor term
 
-    def _floor_samples(self, t: float) -> torch.Tensor:
-        """(M, 3) floor points of training time ``t`` for ``losses.floor_coverage``, a random
-        FLOOR_SAMPLES of them: a grid at the particle spacing on the scene box's floor (lowest z,
-        gravity along -z as in the simulators), half a spacing up, kept where every training view of
-        that time that sees the point sees fluid (the alpha masks at model.carve_threshold). None
-        where the frame's fluid does not reach the floor in every view (a falling drop) or a view
-        has no alpha."""
+    def _floor_points(self, t: float):
+        """The wet floor of training time ``t``, computed once: (its points in a fixed random order,
+        the first FLOOR_SAMPLES repeated at the end (P + FLOOR_SAMPLES, 3), P, the (nx, ny) bool grid
+        of the floor cells that hold one), or None. The points: a grid at the particle spacing on
+        the scene box's floor (lowest z, gravity along -z as in the simulators), half a spacing up,
+        kept where every training view of that time that sees the point sees fluid (the alpha masks
+        at model.carve_threshold). None where the frame's fluid does not reach the floor in every
+        view (a falling drop) or a view has no alpha."""
         if t not in self._floor:
             idx = self.train.at_time(t)
-            pts = None
+            ent = None
             if idx and all(self.train.alphas[i] is not None for i in idx):
                 lo, hi, g = np.asarray(self.model.bounds.lo), np.asarray(self.model.bounds.hi), self.spacing
-                xs, ys = np.arange(lo[0] + g / 2, hi[0], g), np.arange(lo[1] + g / 2, hi[1], g)
-                X, Y = np.meshgrid(xs, ys, indexing="ij")
-                P = np.stack([X.ravel(), Y.ravel(), np.full(X.size, lo[2] + 0.5 * g)], 1)
-                P = P[in_hull(P, [(self.train.cameras[i], self.train.alphas[i]) for i in idx],
-                              self.cfg.model.carve_threshold)]
-                if len(P):
-                    pts = torch.as_tensor(P, dtype=torch.float32, device=self.device)
-            self._floor[t] = pts
-        pts = self._floor[t]
-        if pts is None or len(pts) <= self.FLOOR_SAMPLES:
-            return pts
-        pick = torch.as_tensor(self.np_rng.choice(len(pts), self.FLOOR_SAMPLES, replace=False), device=self.device)
-        return pts[pick]
+                nx, ny = int(np.ceil((hi[0] - lo[0]) / g)), int(np.ceil((hi[1] - lo[1]) / g))
+                I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+                P = np.stack([lo[0] + (I.ravel() + 0.5) * g, lo[1] + (J.ravel() + 0.5) * g,
+                              np.full(I.size, lo[2] + 0.5 * g)], 1)
+                keep = in_hull(P, [(self.train.cameras[i], self.train.alphas[i]) for i in idx],
+                               self.cfg.model.carve_threshold)
+                n = int(keep.sum())
+                if n:
+                    order = np.random.default_rng(self.cfg.train.seed).permutation(n)
+                    pts = P[keep][order]
+                    pts = np.concatenate([pts] * -(-(n + self.FLOOR_SAMPLES) // n))[:n + self.FLOOR_SAMPLES]
+                    wet = torch.as_tensor(keep.reshape(nx, ny), device=self.device)
+                    ent = (torch.as_tensor(pts, dtype=torch.float32, device=self.device), n, wet)
+            self._floor[t] = ent
+        return self._floor[t]
+
+    def _floor_samples(self, t: float) -> torch.Tensor | None:
+        """(M, 3) floor points of training time ``t`` for ``losses.floor_coverage``: all of them, or
+        FLOOR_SAMPLES consecutive ones of the fixed random order from a random start (a slice, no
+        host-to-device copy); None without a wet floor (``_floor_points``)."""
+        ent = self._floor_points(t)
+        if ent is None:
+            return None
+        pts, n, _ = ent
+        if n <= self.FLOOR_SAMPLES:
+            return pts[:n]
+        s = int(self.np_rng.integers(n))
+        return pts[s:s + self.FLOOR_SAMPLES]
 
     def _settle_term(self, t: float, means: torch.Tensor, nbr: torch.Tensor) -> torch.Tensor:
         """losses.settling at training time ``t`` through that frame's position residual only (a
         frame's pull must not move the canonical particles or the decoder, and with them the frames
         where the fluid falls free), gated to the particles that hang unsupported over the wet part
-        of the floor (within a spacing of the floor term's points). A frame whose fluid does not
-        reach the floor in every view gets nothing."""
-        zero = means.sum() * 0.0
-        if self._floor_samples(t) is None:
-            return zero
-        pts = self._floor[t]
+        of the floor (a floor grid cell that holds one of ``_floor_points``). A frame whose fluid
+        does not reach the floor in every view gets nothing."""
+        ent = self._floor_points(t)
+        if ent is None:
+            return means.sum() * 0.0
+        wet = ent[2]
         dec = self.model.decoder
         tau = torch.full((1,), self.time_map.tau(t), dtype=means.dtype, device=self.device)
         r = dec._residual_at(tau, "dp")[0][0]
         pos = means.detach() + (r - r.detach())
-        floor = float(self.model.bounds.lo[2])
+        lo = self.model.bounds.lo
         with torch.no_grad():
-            lo, g = torch.as_tensor(self.model.bounds.lo[:2], dtype=means.dtype, device=self.device), self.spacing
-            # which floor cells are wet: the floor points sit at cell centres of a grid of size g
-            cell = lambda xy: torch.floor((xy - lo) / g).long()  # noqa: E731
-            c = cell(pts[:, :2])
-            nx, ny = int(c[:, 0].max()) + 2, int(c[:, 1].max()) + 2
-            wet = torch.zeros(nx, ny, dtype=torch.bool, device=self.device)
-            wet[c[:, 0], c[:, 1]] = True
-            q = cell(means[:, :2].detach())
-            inside = (q[:, 0] >= 0) & (q[:, 0] < nx) & (q[:, 1] >= 0) & (q[:, 1] < ny)
-            over = torch.zeros(len(means), dtype=torch.bool, device=self.device)
-            over[inside] = wet[q[inside, 0], q[inside, 1]]
-            gate = over & L.unsupported(means.detach(), nbr, self.spacing, floor)
-        return L.settling(pos, gate, floor, self.spacing)
+            q = torch.floor((means[:, :2].detach() - torch.as_tensor(lo[:2], dtype=means.dtype, device=self.device))
+                            / self.spacing).long()
+            inside = (q[:, 0] >= 0) & (q[:, 0] < wet.shape[0]) & (q[:, 1] >= 0) & (q[:, 1] < wet.shape[1])
+            over = wet[q[:, 0].clamp(0, wet.shape[0] - 1), q[:, 1].clamp(0, wet.shape[1] - 1)] & inside
+            gate = over & L.unsupported(means.detach(), nbr, self.spacing, float(lo[2]))
+        return L.settling(pos, gate, float(lo[2]), self.spacing)
 
     def _cam_tensors(self, i: int):
         if i not in self._camt:

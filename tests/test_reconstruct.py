@@ -324,8 +324,8 @@ def test_settle_term_moves_only_its_frames_residual(blob, tmp_path):
     tr.initialise()
     dec = tr.model.decoder
     t = float(tr.train.unique_times[2])  # the blob high in the air
-    tr._floor[t] = torch.tensor([[x, y, 0.5 * tr.spacing] for x in np.arange(-0.4, 0.4, tr.spacing)
-                                 for y in np.arange(-0.4, 0.4, tr.spacing)], dtype=torch.float32)  # all wet
+    nx, ny = int(np.ceil(0.8 / tr.spacing)), int(np.ceil(0.8 / tr.spacing))
+    tr._floor[t] = (None, 0, torch.ones(nx, ny, dtype=torch.bool))  # all of the floor wet
     means = tr.model.at(t)["means"]
     v = tr._settle_term(t, means, tr._neighbors(t, means))
     assert float(v.detach()) > 0  # the blob hangs in the air over a floor said to be wet
@@ -364,9 +364,13 @@ def test_floor_points_lie_where_the_fluid_rests_on_the_floor(tmp_path):
     tr.initialise()
     assert tr.box_source == "dataset"
     t0, t1 = (float(t) for t in tr.train.unique_times)
-    tr.FLOOR_SAMPLES = 10 ** 6  # all of them
-    assert tr._floor_samples(t0) is None
-    S = tr._floor_samples(t1).numpy()
+    assert tr._floor_points(t0) is None and tr._floor_samples(t0) is None
+    pts, n, wet = tr._floor_points(t1)
+    S = pts[:n].numpy()
+    assert int(wet.sum()) == n  # one wet cell per point
+    tr.FLOOR_SAMPLES = 8  # a step's draw: consecutive points of the fixed order, all of them floor points
+    d = tr._floor_samples(t1)
+    assert d.shape == (8, 3) and all(any(np.allclose(x, y) for y in S) for x in d.numpy())
     assert len(S) > 20 and np.allclose(S[:, 2], 0.5 * tr.spacing)
     horiz = np.linalg.norm(S[:, None, :2] - pool[None, :, :2], axis=-1).min(1)
     off = horiz > 1.5 * sp  # beyond the pool's splats: only the floor hidden behind it from every (frontal) view
