@@ -4,7 +4,8 @@ Same function as ``gf_core.temporal.Decoder`` (a test holds the two equal to 1e-
 
     A^t = A^0 + (tau - tau0) * Phi(theta, gamma(tau))                                   (Eq. 4)
 
-plus, when the reconstruction has them, the residuals R(tau) - R(tau0) (linear between knots).
+plus, when the reconstruction has them, the residuals R(tau) - R(tau0) (linear between knots),
+and the colour residuals (the same on the degree-0 SH coefficient, output ``dc``).
 
 with gamma(tau) = [tau, sin(2^k pi tau), cos(2^k pi tau)], k = 0..L-1, and Phi an MLP with ReLU
 between its layers. Float32, vectorised over particles: the first layer's theta part,
@@ -109,15 +110,21 @@ class NumpyDecoder:
         self.knots = None if self.residuals is None else np.asarray(data.residual_knots, np.float64)
         if self.residuals is not None:
             self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
+        # optional colour residuals (recon.h5 version 3): the same knots, on the degree-0 SH coefficient
+        col = getattr(data, "color_residuals", None)
+        self.color_residuals = None if col is None or self.residuals is None else \
+            np.ascontiguousarray(col, np.float32) * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
 
-    def _residual(self, tau: float):
-        """R(tau) (N, k) and dR/dtau (N, k); constant (slope 0) outside the knots."""
+    def _residual(self, tau: float, values=None):
+        """R(tau) (N, k) and dR/dtau (N, k) of ``values`` (N, F, k; default the pose residuals);
+        constant (slope 0) outside the knots."""
+        values = self.residuals if values is None else values
         k = self.knots
         tc = min(max(tau, k[0]), k[-1])
         j = int(np.clip(np.searchsorted(k, tc, side="right") - 1, 0, len(k) - 2))
         span = k[j + 1] - k[j]
         w = np.float32((tc - k[j]) / span)
-        a, b = self.residuals[:, j], self.residuals[:, j + 1]
+        a, b = values[:, j], values[:, j + 1]
         slope = (b - a) * np.float32(1.0 / span) if k[0] <= tau <= k[-1] else np.zeros_like(a)
         return a + w * (b - a), slope
 
@@ -127,7 +134,8 @@ class NumpyDecoder:
 
     def __call__(self, tau: float, *, with_velocity: bool = False) -> dict:
         """Delta A at normalised time ``tau``: dp (N, 3), ds (N, 3), dr (N, 4) float32; with
-        ``with_velocity`` also 'vp' = d(Delta p)/dtau (N, 3)."""
+        ``with_velocity`` also 'vp' = d(Delta p)/dtau (N, 3); with colour residuals also 'dc'
+        (N, channels), the change of the degree-0 SH coefficient."""
         tau = float(tau)
         gamma, dgamma = encode_time(tau, self.n_freqs, self.include_input)
         row = (self.w_gamma @ gamma.astype(np.float32) + self.b0).astype(np.float32)
@@ -172,6 +180,9 @@ class NumpyDecoder:
             k += w
         if with_velocity:
             res["vp"] = vel
+        if self.color_residuals is not None:
+            res["dc"] = self._residual(tau, self.color_residuals)[0] - \
+                self._residual(self.canonical_time, self.color_residuals)[0]
         return res
 
 
@@ -180,6 +191,13 @@ def sigmoid(x):
 
 
 SH_C0 = 0.28209479177387814  # degree-0 spherical-harmonic constant, as the renderer's
+
+
+def base_color(sh_dc) -> np.ndarray:
+    """(N, 3) view-independent colour in [0, 1] of degree-0 SH coefficients (N, channels), as the
+    renderer evaluates it (grayscale repeated over RGB)."""
+    c = SH_C0 * np.asarray(sh_dc, np.float32) + 0.5
+    return np.clip(np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c, 0.0, 1.0)
 
 
 class ParticleAnimation:
@@ -201,18 +219,23 @@ class ParticleAnimation:
         self.bounds = None if not b else (np.asarray(b["lo"], np.float32), np.asarray(b["hi"], np.float32),
                                           np.float32(b["log_scale_min"]), np.float32(b["log_scale_max"]))
         self.opacity = sigmoid(recon.logit_opacity)
-        # view-independent base colour: the degree-0 SH term, as the renderer evaluates it
-        c = SH_C0 * np.asarray(recon.sh, np.float32)[:, 0, :] + 0.5
-        self.color = np.clip(np.repeat(c, 3, axis=1) if c.shape[1] == 1 else c, 0.0, 1.0)
+        self.sh = np.asarray(recon.sh, np.float32)
+        self.color = base_color(self.sh[:, 0, :])  # at the canonical time (colour residuals change it in time)
+
+    @property
+    def color_varies(self) -> bool:
+        """True when the colour changes in time (colour residuals)."""
+        return self.decoder is not None and self.decoder.color_residuals is not None
 
     @property
     def num_particles(self) -> int:
         return self.means.shape[0]
 
     def at(self, t: float, *, velocity: bool = False, warn: bool = True) -> dict:
-        """positions (N, 3), log_scales (N, 3), quats (N, 4, as stored: not normalised) and, with
-        ``velocity``, velocities (N, 3) in scene units per second, at time ``t`` (seconds; outside
-        the clip: clamped, velocity 0)."""
+        """positions (N, 3), log_scales (N, 3), quats (N, 4, as stored: not normalised), sh (N, K,
+        channels), colors (N, 3: the view-independent base colour in [0, 1]) and, with ``velocity``,
+        velocities (N, 3) in scene units per second, at time ``t`` (seconds; outside the clip:
+        clamped, velocity 0)."""
         inside = self.time.inside(t)
         tau = self.time.tau(t, warn=warn)
         d = self.decoder(tau, with_velocity=velocity) if self.decoder is not None else None
@@ -224,7 +247,12 @@ class ParticleAnimation:
             lo, hi, smin, smax = self.bounds
             pos = np.minimum(np.maximum(pos, lo), hi)
             ls = np.clip(ls, smin, smax)
-        out = {"positions": pos, "log_scales": ls, "quats": q}
+        sh, colors = self.sh, self.color
+        if d is not None and "dc" in d:
+            sh = self.sh.copy()
+            sh[:, 0, :] += d["dc"]
+            colors = base_color(sh[:, 0, :])
+        out = {"positions": pos, "log_scales": ls, "quats": q, "sh": sh, "colors": colors}
         if velocity:
             if d is None or self.time.duration <= 0 or not inside:
                 out["velocities"] = np.zeros_like(self.means)
@@ -232,4 +260,4 @@ class ParticleAnimation:
                 out["velocities"] = d["vp"] / np.float32(self.time.duration)
         return out
 
-__all__ = ["NumpyDecoder", "ParticleAnimation", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]
+__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]

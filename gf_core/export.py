@@ -159,7 +159,7 @@ def export_ply(anim: ParticleAnimation, t: float, path) -> Path:
     g = anim.at(t, warn=True)
     r = anim.recon
     return write_ply(path, gaussians_to_ply_columns(g["positions"], g["log_scales"], g["quats"],
-                                                    r.logit_opacity, np.asarray(r.sh, np.float32)))
+                                                    r.logit_opacity, g["sh"]))
 
 
 def particle_radii(log_scales, radius_scale: float = 1.0):

@@ -20,7 +20,7 @@ from torch import nn
 from .errors import InputError
 from .io import ReconData
 from .render.constants import SH_C0
-from .temporal import RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
+from .temporal import COLOR_OUTPUT, RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
 
 PER_PARTICLE = ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest")
 
@@ -83,7 +83,7 @@ class FluidModel(nn.Module):
         dec = None
         if decoder_cfg is not None:
             torch.manual_seed(seed)
-            dec = Decoder(n, decoder_cfg, knots=knots, dtype=dt, device=dev)
+            dec = Decoder(n, decoder_cfg, knots=knots, channels=channels, dtype=dt, device=dev)
         return cls(points.clone(), torch.full((n, 3), math.log(radius), dtype=dt, device=dev), quats,
                    torch.full((n,), logit, dtype=dt, device=dev), sh, bounds=bounds, time_map=time_map,
                    decoder=dec)
@@ -144,14 +144,16 @@ class FluidModel(nn.Module):
         opacities, sh = torch.sigmoid(self.logit_opacity), self.sh()  # the same at every time
         out = []
         for k in range(len(times)):
-            r, vel = raw, None
+            r, vel, sh_k = raw, None, sh
+            if delta is not None and COLOR_OUTPUT in delta:  # colour residuals: the base colour at this time
+                sh_k = torch.cat([self.sh_dc + delta[COLOR_OUTPUT][k][:, None, :], self.sh_rest], 1)
             if delta is not None:
                 r = apply_delta(raw, {name: v[k] for name, v in delta.items()})
                 if with_velocity:
                     vel = delta["vp"][k] / max(self.time_map.duration, 1e-12)
             means, log_scales = self._bounded(r["means"], r["log_scales"])
             p = {"means": means, "scales": torch.exp(log_scales), "quats": r["quats"],
-                 "opacities": opacities, "sh": sh}
+                 "opacities": opacities, "sh": sh_k}
             if with_velocity:
                 p["velocities"] = torch.zeros_like(means) if vel is None else vel
             out.append(p)

@@ -70,6 +70,7 @@ class LRConfig:
     canonical_dynamic: float = 0.1  # factor on the canonical particles' rates in phases 2 and 3
     residuals: float = 1.0         # decoder residuals (decoder.residuals): factor on the means/log_scales/quats rates
     residuals_beta1: float = 0.9   # Adam's momentum for the residuals (a frame's get gradients only when it is drawn)
+    residuals_final: float = 1.0   # the residuals' rates decay exponentially over phase 3 to this fraction
 
 
 @dataclass
@@ -168,6 +169,8 @@ class ReconConfig:
         if ph.freeze_decoder and not self.decoder.residuals:
             raise InputError(where, "phases.freeze_decoder needs decoder.residuals = true (a frozen decoder "
                                     "without residuals could not move the particles in phase 3; set it to false)")
+        if not 0 < self.lr.residuals_final <= 1:
+            raise InputError(where, f"lr.residuals_final must be in (0, 1], got {self.lr.residuals_final}")
         if not 0 <= self.lr.residuals_beta1 < 1:
             raise InputError(where, f"lr.residuals_beta1 must be in [0, 1), got {self.lr.residuals_beta1}")
         if not 0 <= ph.error_sampling <= 1:

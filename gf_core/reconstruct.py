@@ -51,7 +51,11 @@ pose corrections at the training frames, trained from phase ``phases.residuals_f
 of the canonical means (undecayed), log-scales and quaternions times ``lr.residuals``. They give
 each frame's particles a direct path to the images that the shared MLP gives only slowly. With
 ``phases.freeze_decoder`` phase 3 trains only them and the canonical particles: theta and Phi keep
-what phase 2 left, and their output at each frame is computed once (``Decoder.freeze``).
+what phase 2 left, and their output at each frame is computed once (``Decoder.freeze``). Colour
+residuals (``decoder.color_residuals``) add the same per-frame correction to each particle's base
+colour (degree-0 SH), at the rate of ``lr.sh_dc`` times ``lr.residuals``: a rendered water surface
+glints differently in every frame, and a particle of one colour for the whole clip can show that
+only by moving. ``lr.residuals_final`` lets all residual rates decay over phase 3.
 
 Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
 grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
@@ -298,8 +302,8 @@ class Trainer:
                "logit_opacity": lr.logit_opacity, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
         if self.model.decoder is not None:
             lrs["features"] = lr.features
-            for name in self.model.decoder.residuals():  # residual_dp/ds/dr at the rates of means/log_scales/quats
-                base = {"dp": "means", "ds": "log_scales", "dr": "quats"}[name[len("residual_"):]]
+            for name in self.model.decoder.residuals():  # residual_dp/ds/dr/dc at the rates of means/log_scales/quats/sh_dc
+                base = {"dp": "means", "ds": "log_scales", "dr": "quats", "dc": "sh_dc"}[name[len("residual_"):]]
                 lrs[name] = lr.residuals * lrs[base]
         self.base_lrs = lrs
         betas = {name: (lr.residuals_beta1, 0.999) for name in lrs if name.startswith("residual_")}
@@ -395,8 +399,10 @@ class Trainer:
             a = self.FRAME_ERR_SMOOTHING
             self.frame_err[f] = m if not np.isfinite(self.frame_err[f]) else (1 - a) * self.frame_err[f] + a * m
 
-    def _set_lrs(self, run_progress: float) -> None:
+    def _set_lrs(self, run_progress: float, phase_progress: float = 0.0) -> None:
         decay = self.cfg.lr.means_final ** run_progress
+        # the residuals' rates decay over the last phase to lr.residuals_final (1 = constant)
+        res_decay = self.cfg.lr.residuals_final ** phase_progress if self.phase == 3 else 1.0
         f = 1.0 if self.phase == 1 else self.cfg.lr.canonical_dynamic
         dec = self.model.decoder
         frozen = dec is not None and self.phase == 3 and self.cfg.phases.freeze_decoder
@@ -407,7 +413,7 @@ class Trainer:
                 self.opt.set_lr(name, lr if self.phase > 1 and not frozen else 0.0)
             elif name.startswith("residual_"):
                 on = self.phase >= self.cfg.phases.residuals_from
-                self.opt.set_lr(name, lr if on else 0.0)  # no decay: each frame gets a few hundred steps
+                self.opt.set_lr(name, lr * res_decay if on else 0.0)  # each frame gets a few hundred steps
             else:
                 self.opt.set_lr(name, lr * f * (decay if name == "means" else 1.0))
         if dec is not None:
@@ -559,7 +565,7 @@ class Trainer:
         if phase_progress is None:
             phase_progress, run_progress = self.schedule_progress(self.elapsed)
         w = loss_weights(cfg, self.phase, self.ramp(phase_progress))
-        self._set_lrs(run_progress)
+        self._set_lrs(run_progress, phase_progress)
         use_dec = self.phase > 1 and not self.static
         bg = self._background()
         times = self.sample_times(phase_progress)
@@ -746,7 +752,8 @@ class Trainer:
         sh = torch.cat([P["sh_dc"], P["sh_rest"]], 1)
         dec = None
         if st["mlp"] is not None:
-            dec = Decoder(P["means"].shape[0], self.cfg.decoder, knots=self.knots(), device=self.device)
+            dec = Decoder(P["means"].shape[0], self.cfg.decoder, knots=self.knots(), channels=self.channels,
+                          device=self.device)
             dec.layers.load_state_dict(st["mlp"])
             dec.features = torch.nn.Parameter(P["features"])
             for name in dec.residuals():

@@ -42,9 +42,10 @@ def falling_blob(n_side: int = 9, frames: int = 8, fps: float = 10.0, *, spacing
 
 def splat_dataset(root, sim: SimData, *, views: int = 5, test_views: int = 1, resolution: int = 64,
                   fov_deg: float = 40.0, distance: float = 1.6, color=(0.35, 0.6, 0.95), opacity: float = 0.8,
-                  radius_factor: float = 0.6) -> Path:
+                  radius_factor: float = 0.6, frame_colors=None) -> Path:
     """Render ``sim`` with the Gaussian renderer into ``root`` (NeRF layout, RGBA) and copy it to
-    ``root/gt_sim.h5``. Cameras: a 90-degree frontal arc (training) and views between them (held out)."""
+    ``root/gt_sim.h5``. Cameras: a 90-degree frontal arc (training) and views between them (held out).
+    ``frame_colors`` (frames, 3), if given, is the particles' colour at each frame instead of ``color``."""
     root = Path(root)
     fx = 0.5 * resolution / math.tan(math.radians(fov_deg) / 2)
     lo, hi = np.asarray(sim.domain_min), np.asarray(sim.domain_max)
@@ -62,7 +63,8 @@ def splat_dataset(root, sim: SimData, *, views: int = 5, test_views: int = 1, re
         entries = []
         for f in range(sim.num_frames):
             gp = GaussianParticles.from_positions(sim.positions[f], radius=radius_factor * sim.particle_radius,
-                                                  color=color, opacity=opacity)
+                                                  color=color if frame_colors is None else tuple(frame_colors[f]),
+                                                  opacity=opacity)
             for k, cam in enumerate(cams):
                 with torch.no_grad():
                     o = gp.render(cam, background=torch.zeros(3))

@@ -33,7 +33,7 @@ def positions(obj):
 def attr(obj, name, width):
     pc = obj.data
     a = np.empty(len(pc.points) * width, np.float32)
-    pc.attributes[name].data.foreach_get("vector" if width == 3 else "value", a)
+    pc.attributes[name].data.foreach_get({3: "vector", 4: "color"}.get(width, "value"), a)
     return a.reshape(-1, width) if width > 1 else a
 
 
@@ -83,6 +83,7 @@ def main():
                 data[f"p_{f}"] = positions(obj)
                 data[f"v_{f}"] = attr(obj, "velocity", 3)
                 data[f"r_{f}"] = attr(obj, "radius", 1)
+                data[f"c_{f}"] = attr(obj, "gf_color", 4)
             np.savez(out / "frames.npz", **data)
             s = obj.gaussfluids
             res["mapping"] = {"fps": s.fps, "start_frame": s.start_frame, "speed": s.speed}

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from gf_core.decoder_np import ParticleAnimation
 from gf_core.io import ReconData, read_recon, write_recon, write_sim
 from gf_core.temporal import Decoder, DecoderConfig
 
@@ -36,12 +37,14 @@ def addon_zip(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def recon_file(tmp_path_factory):
-    """300 particles in a ball with a random decoder (non-zero everywhere) plus a drift."""
+    """300 particles in a ball with a random decoder (non-zero everywhere) plus a drift, and a
+    base colour that changes in time (colour residuals at 6 knots)."""
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     n = 300
-    dec = Decoder(n, DecoderConfig())
+    dec = Decoder(n, DecoderConfig(residuals=True, color_residuals=True), knots=np.linspace(0.0, 1.0, 6), channels=3)
     with torch.no_grad():
+        dec.residual_dc.normal_(0.0, 0.5)
         dec.features.normal_(0.0, 1.0)
         dec.layers[-1].weight.normal_(0.0, 0.02)
         dec.layers[-1].bias[0] = DRIFT * T_MAX  # Delta p = tau * (... + DRIFT * T_MAX)
@@ -141,6 +144,10 @@ def test_import_follows_the_decoder_at_frames_and_subframes(session, recon_file)
         np.testing.assert_allclose(got[f"r_{f}"], 1.5 * np.exp(ls.mean(1)), rtol=1e-5)
         dv = np.abs(got[f"v_{f}"] - v).max(1)
         assert np.sum(dv > 1e-4) <= 1, (f, dv.max())  # a ReLU kink may differ in one particle
+        # the reconstructed colour follows the colour residuals
+        want = ParticleAnimation(read_recon(recon_file)).at(t, warn=False)["colors"]
+        np.testing.assert_allclose(got[f"c_{f}"][:, :3], want, atol=1e-5, err_msg=f"colour at frame {f}")
+    assert np.abs(got["c_2"] - got["c_7.25"]).max() > 0.05
     # frame 30 is past the clip: clamped to its end, velocity 0, and said so
     assert "outside the reconstruction" in log
     assert not got["v_30"].any()

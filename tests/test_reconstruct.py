@@ -121,6 +121,29 @@ def test_frozen_decoder_leaves_theta_and_phi_as_phase_2_left_them(blob, tmp_path
         small_config(phases={"freeze_decoder": True}, decoder={"residuals": False}).validate()
 
 
+def test_residual_rates_decay_over_phase_3_to_residuals_final(blob, tmp_path):
+    """lr.residuals_final: every residual group's rate (pose and colour) falls exponentially over
+    phase 3 to that fraction; the other groups' rates do not follow it; earlier phases are untouched."""
+    cfg = small_config(decoder={"residuals": True, "color_residuals": True},
+                       lr={"residuals_final": 0.1, "residuals": 3.0}, phases={"residuals_from": 2})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
+    tr.initialise()
+    names = [n for n in tr.base_lrs if n.startswith("residual_")]
+    assert sorted(names) == ["residual_dc", "residual_dp", "residual_dr", "residual_ds"]
+    assert tr.base_lrs["residual_dc"] == pytest.approx(3.0 * cfg.lr.sh_dc)
+    tr.phase = 2
+    tr._set_lrs(0.5, 0.7)
+    assert all(tr.opt.group(n)["lr"] == pytest.approx(tr.base_lrs[n]) for n in names)
+    tr.phase = 3
+    for prog, f in ((0.0, 1.0), (0.5, 0.1 ** 0.5), (1.0, 0.1)):
+        tr._set_lrs(0.8, prog)
+        for n in names:
+            assert tr.opt.group(n)["lr"] == pytest.approx(f * tr.base_lrs[n]), (n, prog)
+        assert tr.opt.group("sh_dc")["lr"] == pytest.approx(cfg.lr.canonical_dynamic * tr.base_lrs["sh_dc"])
+    with pytest.raises(InputError, match="lr.residuals_final must be in"):
+        small_config(lr={"residuals_final": 0.0}).validate()
+
+
 def test_a_time_budget_is_split_by_time_fractions(blob, tmp_path):
     """phases.time_fractions: with a time budget the phases end at these shares of the seconds;
     [] splits the seconds like the iterations (phases.fractions)."""
@@ -411,6 +434,30 @@ def test_tiny_scene_reconstruction_meets_psnr_and_chamfer(blob, tmp_path):
     assert rec.decoder is not None and rec.decoder.features.shape == (rec.num_particles, 64)
     for png in r["plots"]:
         assert (run / png).stat().st_size > 5000
+
+
+def test_color_residuals_follow_a_colour_that_changes_in_time(tmp_path):
+    """Colour residuals (decoder.color_residuals, not in the paper): the blob brightens from frame
+    to frame; with them each frame's colour is matched (training PSNR clearly higher than with one
+    colour per particle for the whole clip), the canonical frame keeps the canonical colour exactly,
+    and the particles are where they were (both Chamfer directions under one spacing)."""
+    base = np.array([0.3, 0.5, 0.8])
+    root = splat_dataset(tmp_path / "ds", falling_blob(n_side=9, frames=8),
+                         frame_colors=[base * (0.75 + 0.05 * f) for f in range(8)])
+    res, recs = {}, {}
+    for on in (True, False):
+        run = tmp_path / f"run_{on}"
+        reconstruct(load_dataset(root), run, small_config(decoder={"color_residuals": on}), log=quiet)
+        res[on] = evaluate(run, dataset=load_dataset(root), log=quiet)
+        recs[on] = read_recon(run / "recon.h5")
+    col = recs[True].decoder.color_residuals
+    assert col is not None and col.shape == (recs[True].num_particles, 8, 3) and recs[False].decoder.color_residuals is None
+    assert np.abs(col[:, 0]).max() == 0.0 and np.abs(col[:, -1]).mean() > 0.05  # canonical frame 0: none
+    on, off = (np.array([x["psnr"] for x in res[k]["train"]["per_frame"]]) for k in (True, False))
+    assert on.mean() > off.mean() + 1.5, (on, off)
+    assert on[-1] > off[-1] + 3.0, (on, off)  # the frame furthest from the canonical colour
+    pv = res[True]["particles_vs_gt"]
+    assert pv["gt_to_recon_max_frame"] < 1.0 and pv["recon_to_gt_max_frame"] < 1.0, pv
 
 
 def test_density_term_makes_the_distribution_uniform_and_fills_the_interior(blob, tmp_path):
