@@ -136,9 +136,10 @@ def update_object(obj, frame: float) -> None:
     _attribute(pc, "radius", "FLOAT").data.foreach_set("value", radius.astype(np.float32))
     if s.velocity:
         _attribute(pc, "velocity", "FLOAT_VECTOR").data.foreach_set("vector", res["velocities"].ravel())
-    if anim.color_varies:  # colour residuals: the reconstructed colour at this time
+    if anim.color_varies or anim.opacity_varies:  # appearance residuals: the reconstructed look at this time
         _attribute(pc, "gf_color", "FLOAT_COLOR").data.foreach_set(
-            "color", np.concatenate([res["colors"], anim.opacity[:, None]], 1).astype(np.float32).ravel())
+            "color", np.concatenate([res["colors"], res["opacities"][:, None]], 1).astype(np.float32).ravel())
+        _attribute(pc, "gf_opacity", "FLOAT").data.foreach_set("value", res["opacities"].astype(np.float32))
     pc.update_tag()
 
 

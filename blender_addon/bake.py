@@ -64,7 +64,7 @@ def bake_vdb(anim, directory: str, frames: list, times_s: list, *, voxel: float,
     for f, t in zip(frames, times_s):
         res = anim.at(t, warn=False)
         dense, lo = caches.density_grid(res["positions"], radius_scale * np.exp(res["log_scales"].mean(1)),
-                                        anim.opacity, voxel)
+                                        res["opacities"], voxel)
         written.append(caches.write_vdb_density(os.path.join(directory, f"density_{int(f):05d}.vdb"), dense, lo,
                                                 voxel, extra_paths=_blender_site_packages()))
     return written

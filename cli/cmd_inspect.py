@@ -77,7 +77,9 @@ def summarise(path: Path, args) -> dict:
                 "channels": r.channels, "dynamic": r.decoder is not None,
                 "residuals": [name for name, on in (("pose", r.decoder is not None and r.decoder.residuals is not None),
                                                     ("color", r.decoder is not None and
-                                                     r.decoder.color_residuals is not None)) if on],
+                                                     r.decoder.color_residuals is not None),
+                                                    ("opacity", r.decoder is not None and
+                                                     r.decoder.opacity_residuals is not None)) if on],
                 "time_range": [r.time_min, r.time_max], "metrics": r.metrics}
     raise FormatError(path, f"unknown format {fmt!r} (expected {SIM_FORMAT} or {RECON_FORMAT})")
 

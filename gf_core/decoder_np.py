@@ -5,7 +5,8 @@ Same function as ``gf_core.temporal.Decoder`` (a test holds the two equal to 1e-
     A^t = A^0 + (tau - tau0) * Phi(theta, gamma(tau))                                   (Eq. 4)
 
 plus, when the reconstruction has them, the residuals R(tau) - R(tau0) (linear between knots),
-and the colour residuals (the same on the degree-0 SH coefficient, output ``dc``).
+and the appearance residuals (the same on the degree-0 SH coefficient, output ``dc``, and on the
+logit opacity, output ``do``).
 
 with gamma(tau) = [tau, sin(2^k pi tau), cos(2^k pi tau)], k = 0..L-1, and Phi an MLP with ReLU
 between its layers. Float32, vectorised over particles: the first layer's theta part,
@@ -111,9 +112,11 @@ class NumpyDecoder:
         if self.residuals is not None:
             self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
         # optional colour residuals (recon.h5 version 3): the same knots, on the degree-0 SH coefficient
-        col = getattr(data, "color_residuals", None)
-        self.color_residuals = None if col is None or self.residuals is None else \
-            np.ascontiguousarray(col, np.float32) * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
+        free = None if self.residuals is None else (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
+        col, op = getattr(data, "color_residuals", None), getattr(data, "opacity_residuals", None)
+        self.color_residuals = None if col is None or free is None else np.ascontiguousarray(col, np.float32) * free
+        self.opacity_residuals = None if op is None or free is None else \
+            np.ascontiguousarray(op, np.float32)[..., None] * free
 
     def _residual(self, tau: float, values=None):
         """R(tau) (N, k) and dR/dtau (N, k) of ``values`` (N, F, k; default the pose residuals);
@@ -135,7 +138,8 @@ class NumpyDecoder:
     def __call__(self, tau: float, *, with_velocity: bool = False) -> dict:
         """Delta A at normalised time ``tau``: dp (N, 3), ds (N, 3), dr (N, 4) float32; with
         ``with_velocity`` also 'vp' = d(Delta p)/dtau (N, 3); with colour residuals also 'dc'
-        (N, channels), the change of the degree-0 SH coefficient."""
+        (N, channels), the change of the degree-0 SH coefficient; with opacity residuals 'do' (N, 1),
+        the change of the logit opacity."""
         tau = float(tau)
         gamma, dgamma = encode_time(tau, self.n_freqs, self.include_input)
         row = (self.w_gamma @ gamma.astype(np.float32) + self.b0).astype(np.float32)
@@ -180,9 +184,9 @@ class NumpyDecoder:
             k += w
         if with_velocity:
             res["vp"] = vel
-        if self.color_residuals is not None:
-            res["dc"] = self._residual(tau, self.color_residuals)[0] - \
-                self._residual(self.canonical_time, self.color_residuals)[0]
+        for name, values in (("dc", self.color_residuals), ("do", self.opacity_residuals)):
+            if values is not None:
+                res[name] = self._residual(tau, values)[0] - self._residual(self.canonical_time, values)[0]
         return res
 
 
@@ -218,7 +222,8 @@ class ParticleAnimation:
         b = (recon.config or {}).get("bounds")
         self.bounds = None if not b else (np.asarray(b["lo"], np.float32), np.asarray(b["hi"], np.float32),
                                           np.float32(b["log_scale_min"]), np.float32(b["log_scale_max"]))
-        self.opacity = sigmoid(recon.logit_opacity)
+        self.logit_opacity = np.asarray(recon.logit_opacity, np.float32)
+        self.opacity = sigmoid(self.logit_opacity)  # at the canonical time (opacity residuals change it in time)
         self.sh = np.asarray(recon.sh, np.float32)
         self.color = base_color(self.sh[:, 0, :])  # at the canonical time (colour residuals change it in time)
 
@@ -228,12 +233,18 @@ class ParticleAnimation:
         return self.decoder is not None and self.decoder.color_residuals is not None
 
     @property
+    def opacity_varies(self) -> bool:
+        """True when the opacity changes in time (opacity residuals)."""
+        return self.decoder is not None and self.decoder.opacity_residuals is not None
+
+    @property
     def num_particles(self) -> int:
         return self.means.shape[0]
 
     def at(self, t: float, *, velocity: bool = False, warn: bool = True) -> dict:
         """positions (N, 3), log_scales (N, 3), quats (N, 4, as stored: not normalised), sh (N, K,
-        channels), colors (N, 3: the view-independent base colour in [0, 1]) and, with ``velocity``,
+        channels), colors (N, 3: the view-independent base colour in [0, 1]), logit_opacity and
+        opacities (N,) and, with ``velocity``,
         velocities (N, 3) in scene units per second, at time ``t`` (seconds; outside the clip:
         clamped, velocity 0)."""
         inside = self.time.inside(t)
@@ -252,7 +263,11 @@ class ParticleAnimation:
             sh = self.sh.copy()
             sh[:, 0, :] += d["dc"]
             colors = base_color(sh[:, 0, :])
-        out = {"positions": pos, "log_scales": ls, "quats": q, "sh": sh, "colors": colors}
+        logit = self.logit_opacity
+        if d is not None and "do" in d:
+            logit = self.logit_opacity + d["do"][:, 0]
+        out = {"positions": pos, "log_scales": ls, "quats": q, "sh": sh, "colors": colors,
+               "logit_opacity": logit, "opacities": self.opacity if logit is self.logit_opacity else sigmoid(logit)}
         if velocity:
             if d is None or self.time.duration <= 0 or not inside:
                 out["velocities"] = np.zeros_like(self.means)

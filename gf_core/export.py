@@ -157,9 +157,8 @@ def export_times(recon, *, frames: slice | None = None, fps: float | None = None
 # ---- the exports ----------------------------------------------------------------------------------
 def export_ply(anim: ParticleAnimation, t: float, path) -> Path:
     g = anim.at(t, warn=True)
-    r = anim.recon
     return write_ply(path, gaussians_to_ply_columns(g["positions"], g["log_scales"], g["quats"],
-                                                    r.logit_opacity, g["sh"]))
+                                                    g["logit_opacity"], g["sh"]))
 
 
 def particle_radii(log_scales, radius_scale: float = 1.0):
@@ -174,7 +173,7 @@ def export_particles(anim: ParticleAnimation, times, out_dir, radius_scale: floa
         p, v = g["positions"], g["velocities"]
         out.append(write_ply(Path(out_dir) / f"particles_{k:05d}.ply", {
             "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2],
-            "radius": particle_radii(g["log_scales"], radius_scale), "opacity": anim.opacity}))
+            "radius": particle_radii(g["log_scales"], radius_scale), "opacity": g["opacities"]}))
     return out
 
 
@@ -187,7 +186,7 @@ def export_vdb(anim: ParticleAnimation, times, out_dir, *, voxel: float | None =
         g = anim.at(t, warn=True)
         sig = particle_radii(g["log_scales"], radius_scale)
         vx = voxel or 0.5 * float(np.median(sig))
-        dense, lo = density_grid(g["positions"], sig, anim.opacity, vx)
+        dense, lo = density_grid(g["positions"], sig, g["opacities"], vx)
         out.append(Path(write_vdb_density(Path(out_dir) / f"density_{k:05d}.vdb", dense, lo, vx)))
     return out
 

@@ -21,7 +21,7 @@ import numpy as np
 from .errors import FormatError, InputError
 
 SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
-# version 2 adds the optional decoder residuals, version 3 the optional colour residuals; a file is
+# version 2 adds the optional decoder residuals, version 3 the optional colour and opacity residuals; a file is
 # written with the lowest version that holds what it has (without residuals: 1), so older readers
 # still read what they can render correctly
 RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 3
@@ -386,6 +386,7 @@ class DecoderData:
     residuals: np.ndarray | None = None       # (N, F, sum(outputs)): pose corrections at the knots (version 2)
     residual_knots: np.ndarray | None = None  # (F,) increasing tau of the knots
     color_residuals: np.ndarray | None = None  # (N, F, channels): degree-0 SH corrections at the knots (version 3)
+    opacity_residuals: np.ndarray | None = None  # (N, F): logit-opacity corrections at the knots (version 3)
 
 
 @dataclass
@@ -458,14 +459,17 @@ def _check_recon(r: ReconData, where) -> None:
                                          f"got {np.shape(d.residuals)}")
             if not np.all(np.isfinite(d.residuals)):
                 raise FormatError(where, "decoder residuals contain NaN or infinite values")
-        if d.color_residuals is not None:
+        for name, tail in (("color_residuals", (r.sh.shape[2],)), ("opacity_residuals", ())):
+            a = getattr(d, name)
+            if a is None:
+                continue
             if d.residuals is None:
-                raise FormatError(where, "decoder color_residuals need the residuals (they share residual_knots)")
-            want = (n, np.asarray(d.residual_knots).size, r.sh.shape[2])
-            if np.shape(d.color_residuals) != want:
-                raise FormatError(where, f"decoder color_residuals must have shape {want}, got {np.shape(d.color_residuals)}")
-            if not np.all(np.isfinite(d.color_residuals)):
-                raise FormatError(where, "decoder color_residuals contain NaN or infinite values")
+                raise FormatError(where, f"decoder {name} need the residuals (they share residual_knots)")
+            want = (n, np.asarray(d.residual_knots).size) + tail
+            if np.shape(a) != want:
+                raise FormatError(where, f"decoder {name} must have shape {want}, got {np.shape(a)}")
+            if not np.all(np.isfinite(a)):
+                raise FormatError(where, f"decoder {name} contain NaN or infinite values")
     for name in ("means", "log_scales", "quats", "logit_opacity", "sh"):
         if not np.all(np.isfinite(getattr(r, name))):
             raise FormatError(where, f"{name} contains NaN or infinite values")
@@ -479,8 +483,9 @@ def write_recon(path, r: ReconData) -> Path:
         with h5py.File(tmp, "w") as f:
             f.attrs["format"] = RECON_FORMAT
             has_res = r.decoder is not None and r.decoder.residuals is not None
-            has_col = has_res and r.decoder.color_residuals is not None
-            f.attrs["version"] = 3 if has_col else (2 if has_res else 1)
+            looks = [k for k in ("color_residuals", "opacity_residuals")
+                     if has_res and getattr(r.decoder, k) is not None]
+            f.attrs["version"] = 3 if looks else (2 if has_res else 1)
             f.attrs["time_min"] = float(r.time_min)
             f.attrs["time_max"] = float(r.time_max)
             f.attrs["config"] = json.dumps(r.config)
@@ -503,8 +508,8 @@ def write_recon(path, r: ReconData) -> Path:
                 if has_res:
                     d.create_dataset("residuals", data=np.asarray(r.decoder.residuals, np.float32))
                     d.create_dataset("residual_knots", data=np.asarray(r.decoder.residual_knots, np.float64))
-                if has_col:
-                    d.create_dataset("color_residuals", data=np.asarray(r.decoder.color_residuals, np.float32))
+                for k in looks:
+                    d.create_dataset(k, data=np.asarray(getattr(r.decoder, k), np.float32))
     return path
 
 
@@ -530,6 +535,8 @@ def read_recon(path) -> ReconData:
                 decoder.residual_knots = _read(d, "residual_knots", path, ndim=1, dtype=np.float64)
             if "color_residuals" in d:
                 decoder.color_residuals = _read(d, "color_residuals", path, ndim=3)
+            if "opacity_residuals" in d:
+                decoder.opacity_residuals = _read(d, "opacity_residuals", path, ndim=2)
         r = ReconData(**arrays, time_min=_attr(f, "time_min", path),
                       time_max=_attr(f, "time_max", path), decoder=decoder,
                       config=_json_attr(f, "config", path), metrics=_json_attr(f, "metrics", path))

@@ -20,7 +20,7 @@ from torch import nn
 from .errors import InputError
 from .io import ReconData
 from .render.constants import SH_C0
-from .temporal import COLOR_OUTPUT, RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
+from .temporal import COLOR_OUTPUT, OPACITY_OUTPUT, RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
 
 PER_PARTICLE = ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest")
 
@@ -144,16 +144,18 @@ class FluidModel(nn.Module):
         opacities, sh = torch.sigmoid(self.logit_opacity), self.sh()  # the same at every time
         out = []
         for k in range(len(times)):
-            r, vel, sh_k = raw, None, sh
+            r, vel, sh_k, op_k = raw, None, sh, opacities
             if delta is not None and COLOR_OUTPUT in delta:  # colour residuals: the base colour at this time
                 sh_k = torch.cat([self.sh_dc + delta[COLOR_OUTPUT][k][:, None, :], self.sh_rest], 1)
+            if delta is not None and OPACITY_OUTPUT in delta:  # opacity residuals: the opacity at this time
+                op_k = torch.sigmoid(self.logit_opacity + delta[OPACITY_OUTPUT][k][:, 0])
             if delta is not None:
                 r = apply_delta(raw, {name: v[k] for name, v in delta.items()})
                 if with_velocity:
                     vel = delta["vp"][k] / max(self.time_map.duration, 1e-12)
             means, log_scales = self._bounded(r["means"], r["log_scales"])
             p = {"means": means, "scales": torch.exp(log_scales), "quats": r["quats"],
-                 "opacities": opacities, "sh": sh_k}
+                 "opacities": op_k, "sh": sh_k}
             if with_velocity:
                 p["velocities"] = torch.zeros_like(means) if vel is None else vel
             out.append(p)

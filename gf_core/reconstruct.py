@@ -52,10 +52,11 @@ of the canonical means (undecayed), log-scales and quaternions times ``lr.residu
 each frame's particles a direct path to the images that the shared MLP gives only slowly. With
 ``phases.freeze_decoder`` phase 3 trains only them and the canonical particles: theta and Phi keep
 what phase 2 left, and their output at each frame is computed once (``Decoder.freeze``). Colour
-residuals (``decoder.color_residuals``) add the same per-frame correction to each particle's base
-colour (degree-0 SH), at the rate of ``lr.sh_dc`` times ``lr.residuals``: a rendered water surface
-glints differently in every frame, and a particle of one colour for the whole clip can show that
-only by moving. ``lr.residuals_final`` lets all residual rates decay over phase 3.
+residuals (``decoder.color_residuals``) and opacity residuals (``decoder.opacity_residuals``)
+add the same per-frame correction to each particle's base colour (degree-0 SH) and logit opacity,
+at the rates of ``lr.sh_dc`` and ``lr.logit_opacity`` times ``lr.residuals``: a rendered water
+surface glints differently in every frame, and a particle of one look for the whole clip can show
+that only by moving. ``lr.residuals_final`` lets all residual rates decay over phase 3.
 
 Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
 grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
@@ -303,7 +304,8 @@ class Trainer:
         if self.model.decoder is not None:
             lrs["features"] = lr.features
             for name in self.model.decoder.residuals():  # residual_dp/ds/dr/dc at the rates of means/log_scales/quats/sh_dc
-                base = {"dp": "means", "ds": "log_scales", "dr": "quats", "dc": "sh_dc"}[name[len("residual_"):]]
+                base = {"dp": "means", "ds": "log_scales", "dr": "quats", "dc": "sh_dc",
+                        "do": "logit_opacity"}[name[len("residual_"):]]
                 lrs[name] = lr.residuals * lrs[base]
         self.base_lrs = lrs
         betas = {name: (lr.residuals_beta1, 0.999) for name in lrs if name.startswith("residual_")}

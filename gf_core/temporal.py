@@ -23,11 +23,12 @@ at knots (the training frames' tau), linear in tau between them and constant out
 still exactly A^0 at tau0 and continuous in time; their velocity is the slope between knots. All
 T times of a training step go through the MLP as one batch (``forward_many``).
 
-Optional colour residuals (``DecoderConfig.color_residuals``, not in the paper, needs the pose
-residuals' knots): the same piecewise-linear R_c(tau) - R_c(tau0) on each particle's degree-0 SH
-coefficient (its base colour), output ``dc`` (N, channels). The particles' geometry is unchanged;
-what changes in time is only how a particle looks (a rendered water surface glints differently
-in every frame, which particles of one colour cannot show).
+Optional appearance residuals (not in the paper, they need the pose residuals' knots): the same
+piecewise-linear R(tau) - R(tau0) on each particle's degree-0 SH coefficient (its base colour;
+``DecoderConfig.color_residuals``, output ``dc`` (N, channels)) and on its logit opacity
+(``DecoderConfig.opacity_residuals``, output ``do`` (N, 1)). The particles' geometry is
+unchanged; what changes in time is only how a particle looks (a rendered water surface glints
+differently in every frame, which particles of one colour and opacity cannot show).
 
 The numpy twin in ``gf_core/decoder_np.py`` (used by the Blender extension, which has no torch)
 evaluates the same function; a test holds the two equal.
@@ -48,6 +49,7 @@ from .errors import InputError
 
 RESIDUAL_PREFIX = "residual_"  # the residuals' parameter names: residual_dp, residual_ds, residual_dr (, residual_dc)
 COLOR_OUTPUT = "dc"            # the colour residuals' output: change of the degree-0 SH coefficient (N, channels)
+OPACITY_OUTPUT = "do"          # the opacity residuals' output: change of the logit opacity (N, 1)
 
 
 @dataclass
@@ -60,6 +62,7 @@ class DecoderConfig:
     canonical_time: float = 0.0  # tau0 in [0, 1]
     residuals: bool = False      # per-particle pose corrections at the training frames (not in the paper)
     color_residuals: bool = False  # per-particle base-colour corrections at the same knots (not in the paper)
+    opacity_residuals: bool = False  # per-particle logit-opacity corrections at the same knots (not in the paper)
 
     def validate(self) -> "DecoderConfig":
         for k in ("feature_dim", "hidden_layers", "hidden_width"):
@@ -69,8 +72,9 @@ class DecoderConfig:
             raise InputError("decoder config", f"n_freqs must be >= 0, got {self.n_freqs}")
         if not 0.0 <= float(self.canonical_time) <= 1.0:
             raise InputError("decoder config", f"canonical_time must be in [0, 1], got {self.canonical_time}")
-        if self.color_residuals and not self.residuals:
-            raise InputError("decoder config", "color_residuals need residuals = true (they share its knots)")
+        for k in ("color_residuals", "opacity_residuals"):
+            if getattr(self, k) and not self.residuals:
+                raise InputError("decoder config", f"{k} need residuals = true (they share its knots)")
         if int(self.n_freqs) == 0 and not self.include_input:
             raise InputError("decoder config", "the time encoding is empty (n_freqs 0 and no include_input)")
         return self
@@ -118,7 +122,8 @@ class Decoder(nn.Module):
             self.knots = kn.to(dtype=dtype, device=device)
             # R is 0 at the canonical frame's knot (it would only shift every other frame)
             self.knot_free = ((self.knots - c.canonical_time).abs() > 1e-6).to(dtype)
-            widths = dict(OUTPUTS, **({COLOR_OUTPUT: int(channels)} if c.color_residuals else {}))
+            widths = dict(OUTPUTS, **({COLOR_OUTPUT: int(channels)} if c.color_residuals else {}),
+                          **({OPACITY_OUTPUT: 1} if c.opacity_residuals else {}))
             for name, width in widths.items():
                 setattr(self, RESIDUAL_PREFIX + name,
                         nn.Parameter(torch.zeros(num_particles, kn.numel(), width, dtype=dtype, device=device)))
@@ -141,12 +146,18 @@ class Decoder(nn.Module):
         return list(self.layers.parameters())
 
     def residuals(self) -> dict:
-        """{'residual_dp': (N, F, 3), ..., 'residual_dc': (N, F, C) with colour residuals} (empty
-        without residuals)."""
+        """{'residual_dp': (N, F, 3), ..., 'residual_dc': (N, F, C) with colour residuals,
+        'residual_do': (N, F, 1) with opacity residuals} (empty without residuals)."""
         if self.knots is None:
             return {}
-        names = list(OUTPUTS) + ([COLOR_OUTPUT] if self.cfg.color_residuals else [])
+        names = list(OUTPUTS) + self.appearance_outputs()
         return {RESIDUAL_PREFIX + n: getattr(self, RESIDUAL_PREFIX + n) for n in names}
+
+    def appearance_outputs(self) -> list:
+        """The appearance residuals' output names ('dc', 'do') this decoder has."""
+        c = self.cfg
+        return [n for n, on in ((COLOR_OUTPUT, c.color_residuals), (OPACITY_OUTPUT, c.opacity_residuals))
+                if on and self.knots is not None]
 
     def _residual_at(self, tau_t: torch.Tensor, name: str):
         """R(tau) (T, N, k) and dR/dtau (T, N, k) of output ``name``: linear between the knots,
@@ -178,7 +189,8 @@ class Decoder(nn.Module):
     def forward_many(self, taus, *, features: torch.Tensor | None = None, with_velocity: bool = False):
         """Delta A at T normalised times at once (one pass of (T N) rows through the MLP; the
         features' part of the first layer is computed once): dict of (T, N, k) tensors; with
-        colour residuals also 'dc' (T, N, C), the change of the degree-0 SH coefficient."""
+        colour residuals also 'dc' (T, N, C), the change of the degree-0 SH coefficient, with opacity
+        residuals 'do' (T, N, 1), the change of the logit opacity."""
         feats = self.features if features is None else features
         n = feats.shape[0]
         keys = None  # the frozen decoder's cache keys: the times as given (python numbers only, no sync)
@@ -207,9 +219,9 @@ class Decoder(nn.Module):
                 if with_velocity and name == "dp":
                     out["vp"] = out["vp"] + dr
             k += width
-        if self.cfg.color_residuals:
-            r, _ = self._residual_at(tau_t, COLOR_OUTPUT)
-            out[COLOR_OUTPUT] = r - self._residual_at(tau0, COLOR_OUTPUT)[0]
+        for name in self.appearance_outputs():
+            r, _ = self._residual_at(tau_t, name)
+            out[name] = r - self._residual_at(tau0, name)[0]
         return out
 
     def _mlp(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool):
@@ -278,8 +290,14 @@ class Decoder(nn.Module):
 
         layers = [(lyr.weight.detach().cpu().numpy(), lyr.bias.detach().cpu().numpy()) for lyr in self.layers]
         c = self.cfg
-        res = {k: v for k, v in self.residuals().items() if k != RESIDUAL_PREFIX + COLOR_OUTPUT}
-        col = getattr(self, RESIDUAL_PREFIX + COLOR_OUTPUT) if self.cfg.color_residuals else None
+        res = {k: v for k, v in self.residuals().items() if k[len(RESIDUAL_PREFIX):] in OUTPUTS}
+
+        def appearance(name):  # (N, F, k) at the knots, 0 at the canonical one; None when absent
+            if name not in self.appearance_outputs():
+                return None
+            return (getattr(self, RESIDUAL_PREFIX + name) * self.knot_free[None, :, None]).detach().cpu().numpy()
+
+        op = appearance(OPACITY_OUTPUT)
         return DecoderData(features=self.features.detach().cpu().numpy(), layers=layers,
                            encoding={"n_freqs": c.n_freqs, "include_input": c.include_input,
                                      "canonical_time": c.canonical_time, "time_scaling": "tau - tau0"},
@@ -287,8 +305,8 @@ class Decoder(nn.Module):
                            residuals=None if not res else
                            torch.cat([(v * self.knot_free[None, :, None]).detach() for v in res.values()], -1).cpu().numpy(),
                            residual_knots=None if self.knots is None else self.knots.detach().cpu().numpy(),
-                           color_residuals=None if col is None else
-                           (col * self.knot_free[None, :, None]).detach().cpu().numpy())
+                           color_residuals=appearance(COLOR_OUTPUT),
+                           opacity_residuals=None if op is None else op[..., 0])
 
     @classmethod
     def from_data(cls, d, *, dtype=torch.float32, device=None) -> "Decoder":
@@ -301,11 +319,12 @@ class Decoder(nn.Module):
         feat_dim = d.features.shape[1]
         res = getattr(d, "residuals", None)
         col = getattr(d, "color_residuals", None)
+        op = getattr(d, "opacity_residuals", None)
         cfg = DecoderConfig(feature_dim=feat_dim, hidden_layers=len(d.layers) - 1,
                             hidden_width=d.layers[0][0].shape[0], n_freqs=int(enc.get("n_freqs", 0)),
                             include_input=bool(enc.get("include_input", True)),
                             canonical_time=float(enc.get("canonical_time", 0.0)), residuals=res is not None,
-                            color_residuals=col is not None)
+                            color_residuals=col is not None, opacity_residuals=op is not None)
         if d.layers[0][0].shape[1] != feat_dim + cfg.encoding_dim:
             raise InputError("recon.h5 decoder", f"first layer takes {d.layers[0][0].shape[1]} inputs; "
                                                  f"features ({feat_dim}) + encoding ({cfg.encoding_dim}) differ")
@@ -319,6 +338,8 @@ class Decoder(nn.Module):
                 k += width
             if col is not None:
                 getattr(dec, RESIDUAL_PREFIX + COLOR_OUTPUT).copy_(torch.as_tensor(np.asarray(col)))
+            if op is not None:
+                getattr(dec, RESIDUAL_PREFIX + OPACITY_OUTPUT).copy_(torch.as_tensor(np.asarray(op))[..., None])
             for lyr, (w, b) in zip(dec.layers, d.layers):
                 if tuple(lyr.weight.shape) != tuple(w.shape):
                     raise InputError("recon.h5 decoder", f"layer shape {w.shape} != expected {tuple(lyr.weight.shape)}")
@@ -334,4 +355,4 @@ def apply_delta(canonical: dict, delta: dict) -> dict:
             "quats": canonical["quats"] + delta["dr"]}
 
 
-__all__ = ["RESIDUAL_PREFIX", "COLOR_OUTPUT", "Decoder", "DecoderConfig", "TimeMap", "encode_time", "apply_delta", "OUTPUTS"]
+__all__ = ["RESIDUAL_PREFIX", "COLOR_OUTPUT", "OPACITY_OUTPUT", "Decoder", "DecoderConfig", "TimeMap", "encode_time", "apply_delta", "OUTPUTS"]

@@ -122,22 +122,23 @@ def test_recon_with_residuals_is_version_2_and_round_trips(tmp_path):
         write_recon(tmp_path / "bad.h5", r)
 
 
-def test_color_residuals_numpy_equals_torch_and_round_trip_as_version_3(tmp_path):
-    """Colour residuals (not in the paper): the base colour (degree-0 SH) piecewise linear in time
-    at the pose residuals' knots, zero at the canonical time; the torch model, the numpy decoder
-    (Blender extension) and a recon.h5 round trip give the same colours; geometry is unchanged."""
+def test_appearance_residuals_numpy_equals_torch_and_round_trip_as_version_3(tmp_path):
+    """Colour and opacity residuals (not in the paper): the base colour (degree-0 SH) and the logit
+    opacity piecewise linear in time at the pose residuals' knots, zero at the canonical time; the
+    torch model, the numpy decoder (Blender extension) and a recon.h5 round trip give the same
+    colours and opacities; geometry is unchanged."""
     import h5py
     from gf_core.model import FluidModel
     n, knots = 40, np.linspace(0.0, 1.0, 5)
     torch.manual_seed(3)
-    dec = Decoder(n, DecoderConfig(residuals=True, color_residuals=True, n_freqs=3, hidden_width=32,
-                                   canonical_time=float(knots[1])), knots=knots, channels=3)
+    dec = Decoder(n, DecoderConfig(residuals=True, color_residuals=True, opacity_residuals=True, n_freqs=3,
+                                   hidden_width=32, canonical_time=float(knots[1])), knots=knots, channels=3)
     with torch.no_grad():
         dec.features.normal_(0.0, 1.0)
         dec.layers[-1].weight.normal_(0.0, 0.02)
         for name, p in dec.residuals().items():  # small pose changes: the particles stay in the box
-            p.normal_(0.0, 0.3 if name == "residual_dc" else 0.003)
-    assert dec.residual_dc.shape == (n, 5, 3)
+            p.normal_(0.0, 0.3 if name in ("residual_dc", "residual_do") else 0.003)
+    assert dec.residual_dc.shape == (n, 5, 3) and dec.residual_do.shape == (n, 5, 1)
     r = make_recon(n, t=(0.0, 2.0))
     r.decoder = dec.to_data()
     write_recon(tmp_path / "v3.h5", r)
@@ -145,31 +146,42 @@ def test_color_residuals_numpy_equals_torch_and_round_trip_as_version_3(tmp_path
         assert int(f.attrs["version"]) == 3
     back = read_recon(tmp_path / "v3.h5")
     np.testing.assert_array_equal(back.decoder.color_residuals, r.decoder.color_residuals)
+    np.testing.assert_array_equal(back.decoder.opacity_residuals, r.decoder.opacity_residuals)
+    assert back.decoder.opacity_residuals.shape == (n, 5)
     model, anim = FluidModel.from_recon(back), ParticleAnimation(back)
-    assert anim.color_varies
+    assert anim.color_varies and anim.opacity_varies
     for t in (0.0, 0.5, 0.77, 1.3, 2.0):  # 0.5 s is the canonical time (tau 0.25)
         with torch.no_grad():
             ref = model.at(t)
         got = anim.at(t)
         np.testing.assert_allclose(got["sh"], ref["sh"].numpy(), rtol=0, atol=1e-5, err_msg=f"sh at {t}")
         np.testing.assert_allclose(got["positions"], ref["means"].numpy(), rtol=0, atol=1e-5)
+        np.testing.assert_allclose(got["opacities"], ref["opacities"].numpy(), rtol=0, atol=1e-6)
         np.testing.assert_array_equal(got["sh"][:, 1:], back.sh[:, 1:])  # only the base colour changes
         assert got["colors"].shape == (n, 3) and 0 <= got["colors"].min() and got["colors"].max() <= 1
-    np.testing.assert_array_equal(anim.at(0.5)["sh"], back.sh)  # exactly the canonical colour at tau0
+    np.testing.assert_array_equal(anim.at(0.5)["sh"], back.sh)  # exactly the canonical look at tau0
+    np.testing.assert_array_equal(anim.at(0.5)["logit_opacity"], back.logit_opacity)
     assert np.abs(anim.at(1.3)["sh"][:, 0] - back.sh[:, 0]).max() > 0.05
-    # without colour residuals the file stays version 2 and the colour is the same at every time
-    r.decoder.color_residuals = None
+    assert np.abs(anim.at(1.3)["opacities"] - anim.opacity).max() > 0.01
+    # without appearance residuals the file stays version 2 and the look is the same at every time
+    r.decoder.color_residuals = r.decoder.opacity_residuals = None
     write_recon(tmp_path / "v2.h5", r)
     with h5py.File(tmp_path / "v2.h5") as f:
         assert int(f.attrs["version"]) == 2
     plain = ParticleAnimation(read_recon(tmp_path / "v2.h5"))
-    assert not plain.color_varies
+    assert not plain.color_varies and not plain.opacity_varies
     np.testing.assert_array_equal(plain.at(1.3)["sh"], back.sh)
+    np.testing.assert_array_equal(plain.at(1.3)["opacities"], plain.opacity)
     r.decoder.color_residuals = back.decoder.color_residuals[:, :, :1]
     with pytest.raises(Exception, match="color_residuals must have shape"):
         write_recon(tmp_path / "bad.h5", r)
-    with pytest.raises(InputError, match="color_residuals need residuals"):
-        DecoderConfig(color_residuals=True).validate()
+    r.decoder.color_residuals = None
+    r.decoder.opacity_residuals = back.decoder.opacity_residuals[:, :4]
+    with pytest.raises(Exception, match="opacity_residuals must have shape"):
+        write_recon(tmp_path / "bad.h5", r)
+    for k in ("color_residuals", "opacity_residuals"):
+        with pytest.raises(InputError, match=f"{k} need residuals"):
+            DecoderConfig(**{k: True}).validate()
 
 
 def make_recon(n=40, static=False, t=(0.0, 0.5)):

@@ -487,9 +487,10 @@ def test_density_term_makes_the_distribution_uniform_and_fills_the_interior(blob
     assert min(covered) > 0.9, covered
 
 
-@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True}, "lr": {"residuals_beta1": 0.0},
+@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True, "color_residuals": True, "opacity_residuals": True},
+                                       "lr": {"residuals_beta1": 0.0, "residuals_final": 0.2},
                                        "phases": {"residuals_from": 2, "error_sampling": 0.5, "freeze_decoder": True}}],
-                         ids=["paper", "residuals+error-sampling+frozen-decoder"])
+                         ids=["paper", "residuals+appearance+error-sampling+frozen-decoder"])
 def test_resume_continues_exactly(blob, tmp_path, extra):
     """A run interrupted after a checkpoint and resumed ends where an uninterrupted run ends
     (with the decoder residuals, their own Adam momentum and error-weighted frames: their state
@@ -521,6 +522,9 @@ def test_resume_continues_exactly(blob, tmp_path, extra):
     if extra:
         assert ra.decoder.residuals.shape == (len(ra.means), 8, 10) and np.abs(ra.decoder.residuals).max() > 0
         assert np.allclose(ra.decoder.residuals, rb.decoder.residuals, atol=1e-5)
+        for k in ("color_residuals", "opacity_residuals"):  # the appearance residuals trained and resumed
+            a_k, b_k = getattr(ra.decoder, k), getattr(rb.decoder, k)
+            assert np.abs(a_k).max() > 0 and np.allclose(a_k, b_k, atol=1e-5), k
 
 
 def test_resume_refuses_another_dataset_or_config(blob, tmp_path):
