@@ -47,7 +47,7 @@ from torch import nn
 from .decoder_np import OUTPUTS, TimeMap
 from .errors import InputError
 
-RESIDUAL_PREFIX = "residual_"  # the residuals' parameter names: residual_dp, residual_ds, residual_dr (, residual_dc)
+RESIDUAL_PREFIX = "residual_"  # parameter names: residual_dp, residual_ds, residual_dr (, residual_dc, residual_do)
 COLOR_OUTPUT = "dc"            # the colour residuals' output: change of the degree-0 SH coefficient (N, channels)
 OPACITY_OUTPUT = "do"          # the opacity residuals' output: change of the logit opacity (N, 1)
 
