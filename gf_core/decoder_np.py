@@ -111,7 +111,8 @@ class NumpyDecoder:
         self.knots = None if self.residuals is None else np.asarray(data.residual_knots, np.float64)
         if self.residuals is not None:
             self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
-        # optional colour residuals (recon.h5 version 3): the same knots, on the degree-0 SH coefficient
+        # optional appearance residuals (recon.h5 version 3): the same knots, on the degree-0 SH
+        # coefficient (colour) and on the logit opacity
         free = None if self.residuals is None else (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
         col, op = getattr(data, "color_residuals", None), getattr(data, "opacity_residuals", None)
         self.color_residuals = None if col is None or free is None else np.ascontiguousarray(col, np.float32) * free
