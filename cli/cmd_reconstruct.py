@@ -13,7 +13,8 @@ Phases: (1) the canonical frame alone, 3DGS-style, particles started inside the 
 carved from the alpha masks; (2) every frame, the time decoder learns the motion while the
 density loss rises to 10% of its weight; (3) density, volume and anisotropy weights rise to
 their final values. Each phase ends at a plateau of its image loss or at its share of
---iterations. Densify/prune runs in phases 1-2 within --max-particles. The water preset adds,
+--iterations. Densify/prune runs within --max-particles, in every phase with the water preset
+([densify] phases). The water preset adds,
 beyond the paper, per-frame residuals from phase 3 on: pose corrections and base-colour
 corrections of every particle at each training frame ([decoder] residuals, color_residuals).
 

@@ -30,7 +30,9 @@ def register(sub):
     p.add_argument("--views", type=int, default=5, help="training cameras on a frontal arc (default 5)")
     p.add_argument("--test-views", type=int, default=0, help="held-out cameras between them (default 0)")
     p.add_argument("--resolution", type=int, default=400, help="image width and height in pixels (default 400)")
-    p.add_argument("--samples", type=int, default=32, help="Cycles samples per pixel (default 32)")
+    p.add_argument("--samples", type=int, default=32,
+                   help="Cycles samples per pixel (default 32); the images' noise falls as 1/samples "
+                        "(scripts/render_noise.py measures it between two seeds)")
     p.add_argument("--denoise", action="store_true", help="denoise (needs a Blender with OpenImageDenoise; default off)")
     p.add_argument("--seed", type=int, default=0, help="render seed (default 0)")
     p.add_argument("--frames", default=":", help="START:END:STEP over the simulation's frames (default: all)")

@@ -85,6 +85,7 @@ class PhaseConfig:
     phase2_density: float = 0.1    # lambda_d reaches this fraction by the end of phase 2
     time_curriculum: float = 0.5   # phase 2 samples times near the canonical one, widening to the clip over this fraction
     error_sampling: float = 0.0    # share of the time draws made in proportion to each frame's recent image error
+    error_sampling_from: int = 2   # the phase (2 or 3) from which error_sampling applies
     residuals_from: int = 3        # the phase (2 or 3) from which the decoder residuals are trained
     freeze_decoder: bool = False   # phase 3 trains the canonical particles and residuals only (theta, Phi frozen)
 
@@ -175,6 +176,8 @@ class ReconConfig:
             raise InputError(where, f"lr.residuals_beta1 must be in [0, 1), got {self.lr.residuals_beta1}")
         if not 0 <= ph.error_sampling <= 1:
             raise InputError(where, f"phases.error_sampling must be in [0, 1], got {ph.error_sampling}")
+        if ph.error_sampling_from not in (2, 3):
+            raise InputError(where, f"phases.error_sampling_from must be 2 or 3, got {ph.error_sampling_from}")
         if self.train.log_every < 1 or self.train.checkpoint_every < 1 or self.train.eval_every < 1:
             raise InputError(where, "train.log_every, eval_every and checkpoint_every must be >= 1")
         self.decoder.validate()

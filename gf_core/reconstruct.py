@@ -43,8 +43,9 @@ frame's position residual only, so that no pull reaches the frames where the flu
 Coarse to fine in time and space (phase 2): the times drawn widen from the canonical one to the
 whole clip over ``phases.time_curriculum`` of the phase, and the L1 term compares images blurred
 with a Gaussian of ``loss.blur_start`` x width that shrinks to none as the window widens. Once the
-window is the whole clip, ``phases.error_sampling`` of the draws pick frames in proportion to their
-smoothed image error (the splash after an impact is harder than the free fall before it).
+window is the whole clip (from phase ``phases.error_sampling_from``), ``phases.error_sampling`` of
+the draws pick frames in proportion to their smoothed image error (the splash after an impact is
+harder than the free fall before it).
 
 Decoder residuals (``decoder.residuals``, not in the paper; ``gf_core/temporal.py``): per-particle
 pose corrections at the training frames, trained from phase ``phases.residuals_from`` at the rates
@@ -377,7 +378,8 @@ class Trainer:
         width = max(self.window_width(phase_progress), 2.0 / max(len(times) - 1, 1))
         pool = np.nonzero(np.abs(tau - tau0) <= width + 1e-9)[0]
         share = self.cfg.phases.error_sampling
-        if share > 0 and len(pool) == len(times) and np.all(np.isfinite(self.frame_err)):
+        if share > 0 and self.phase >= self.cfg.phases.error_sampling_from and len(pool) == len(times) \
+                and np.all(np.isfinite(self.frame_err)):
             # the hard frames (the splash) more often: a mixture of uniform and error-proportional draws
             err = np.maximum(self.frame_err, 1e-12)
             prob = (1 - share) / len(times) + share * err / err.sum()

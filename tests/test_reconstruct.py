@@ -487,6 +487,24 @@ def test_density_term_makes_the_distribution_uniform_and_fills_the_interior(blob
     assert min(covered) > 0.9, covered
 
 
+def test_error_sampling_starts_at_its_phase(blob, tmp_path):
+    """phases.error_sampling draws frames by their image error from phases.error_sampling_from on,
+    uniformly before it (every draw is the one bad frame at share 1 from that phase)."""
+    cfg = small_config(phases={"error_sampling": 1.0, "error_sampling_from": 3})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path, log=quiet)
+    times = tr.train.unique_times
+    tr.frame_err = np.full(len(times), 1e-6)
+    tr.frame_err[5] = 1.0
+    tr.phase = 2
+    drawn = [t for _ in range(40) for t in tr.sample_times(1.0)]
+    assert len(set(drawn)) >= 5  # uniform over the 8 frames in phase 2
+    tr.phase = 3
+    drawn = [t for _ in range(40) for t in tr.sample_times(0.5)]
+    assert set(drawn) == {float(times[5])}
+    with pytest.raises(InputError, match="error_sampling_from"):
+        small_config(phases={"error_sampling_from": 1})
+
+
 @pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True, "color_residuals": True, "opacity_residuals": True},
                                        "lr": {"residuals_beta1": 0.0, "residuals_final": 0.2},
                                        "phases": {"residuals_from": 2, "error_sampling": 0.5, "freeze_decoder": True}}],
