@@ -6,9 +6,10 @@ Compares two renders of the same simulation and cameras (``gf-cli render-dataset
 
     python scripts/render_noise.py DATASET_A DATASET_B [--split test|train|both] [--json FILE]
 
-With two renders at the same sample count and different seeds, the noise of each is half of the
-MSE between them, so a noise-free prediction of the images (the best any reconstruction can do)
-scores PSNR(A, B) + 3 dB against either: the ceiling printed. Images present in only one of the
+The ceiling printed holds only for two renders at the same sample count and different seeds:
+then the noise of each is half of the MSE between them, so a noise-free prediction of the images
+(the best any reconstruction can do) scores PSNR(A, B) + 3 dB against either. Renders that share
+a seed share their first samples, so their PSNR overstates how clean either is. Images present in only one of the
 two are reported and skipped. Used for BENCHMARKS.md ("Fifteenth session"); not part of the API.
 """
 
