@@ -114,6 +114,7 @@ class TrainConfig:
     checkpoint_every: int = 1000
     max_bad_steps: int = 20        # consecutive non-finite steps before the run stops
     time_budget_s: float = 0.0     # stop (and write the result) after this many wall-clock seconds; 0 = none
+    mlp_precision: str = "auto"    # the decoder's hidden layers in training steps: auto, float32 or bfloat16
 
 
 @dataclass
@@ -180,6 +181,8 @@ class ReconConfig:
             raise InputError(where, f"phases.error_sampling_from must be 2 or 3, got {ph.error_sampling_from}")
         if self.train.log_every < 1 or self.train.checkpoint_every < 1 or self.train.eval_every < 1:
             raise InputError(where, "train.log_every, eval_every and checkpoint_every must be >= 1")
+        if self.train.mlp_precision not in ("auto", "float32", "bfloat16"):
+            raise InputError(where, f"train.mlp_precision must be auto, float32 or bfloat16, got {self.train.mlp_precision!r}")
         self.decoder.validate()
         return self
 

@@ -147,6 +147,20 @@ def load_images(ds, device, dtype=torch.float32) -> Images:
     return Images(imgs, alphas, cams, np.asarray(times, np.float64), views, bg)
 
 
+def mlp_low_precision(setting: str, device) -> bool:
+    """Whether train.mlp_precision ``setting`` means bfloat16 on ``device``: "auto" only on a CPU
+    whose oneDNN has native bf16 matrix products (there the MLP's products take about a third of
+    the float32 time, BENCHMARKS.md); elsewhere (emulated bf16, GPUs) float32."""
+    if setting != "auto":
+        return setting == "bfloat16"
+    if torch.device(device).type != "cpu":
+        return False
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 def dataset_fingerprint(ds) -> str:
     """A hash of what the images are (files, sizes, mtimes, cameras, times)."""
     h = hashlib.sha1()
@@ -287,10 +301,22 @@ class Trainer:
             time_map=self.time_map, decoder_cfg=None if self.static else cfg.decoder, knots=self.knots(),
             seed=cfg.train.seed)
         self._make_optimizer()
+        self._set_mlp_precision()
         self.log(f"start: {len(self.model)} particles ({self.init_source}) in the scene box from {src} "
                  f"{np.round(lo, 3).tolist()}..{np.round(hi, 3).tolist()}; fluid volume {volume:.3g} m^3, "
                  f"spacing {self.spacing:.4g} m, h = {self.h:.4g} m; "
                  f"{'static scene (no decoder)' if self.static else f'{len(self.train.unique_times)} times'}")
+
+    def _set_mlp_precision(self) -> None:
+        """train.mlp_precision: the decoder's training passes in bfloat16 (``Decoder.mlp_dtype``)."""
+        dec = self.model.decoder
+        if dec is None:
+            return
+        low = mlp_low_precision(self.cfg.train.mlp_precision, self.device)
+        dec.mlp_dtype = torch.bfloat16 if low else None
+        if low:
+            self.log(f"decoder MLP in bfloat16 in the training steps (train.mlp_precision = "
+                     f"{self.cfg.train.mlp_precision}); recon.h5 and evaluation stay float32")
 
     def knots(self) -> list[float] | None:
         """The decoder residuals' knots: the training frames' tau (None without residuals)."""
@@ -767,6 +793,7 @@ class Trainer:
         self.spacing, self.h, self.volume = st["spacing"], st["h"], st["volume"]
         self.box_source, self.init_source = st["box_source"], st["init_source"]
         self._make_optimizer()
+        self._set_mlp_precision()
         self.opt.load_state_dict(st["optimizer"])
         self.iteration, self.phase, self.phase_it = st["iteration"], st["phase"], st["phase_it"]
         self.elapsed = st["elapsed"]

@@ -137,6 +137,12 @@ class Decoder(nn.Module):
         nn.init.zeros_(last.bias)
         self.layers = nn.ModuleList(layers + [last])
         self._frozen = None  # freeze(): {tau: (tau - tau0) Phi (N, outputs)} while frozen
+        # a lower precision (torch.bfloat16) for the hidden layers' matrix products in passes that
+        # record gradients (training steps); None = the parameters' dtype. Passes without gradients
+        # (the frozen decoder's cache, evaluation, export) and the last layer stay in full precision,
+        # so the decoder that is saved and evaluated is the float32 one. Set by the trainer
+        # (train.mlp_precision), not saved.
+        self.mlp_dtype = None
 
     @property
     def num_particles(self) -> int:
@@ -230,6 +236,8 @@ class Decoder(nn.Module):
         n = feats.shape[0]
         nt = tau_t.shape[0]
         gamma, dgamma = encode_time(tau_t, self.cfg.n_freqs, self.cfg.include_input)  # (T, D)
+        if self.mlp_dtype is not None and not with_velocity and torch.is_grad_enabled():
+            return self._mlp_low(tau_t, gamma, feats), None
         a_theta, a_gamma = self._first_layer(feats, gamma)                             # (N, W), (T, W)
         h = (a_theta[None] + a_gamma[:, None]).reshape(nt * n, -1)
         dh = None
@@ -248,6 +256,18 @@ class Decoder(nn.Module):
         if with_velocity:  # dp is OUTPUTS' first entry
             vp = h[..., :3] + scale * dh[..., :3]
         return scale * h, vp
+
+    def _mlp_low(self, tau_t: torch.Tensor, gamma: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        """``_mlp`` without velocities, its first and hidden layers in ``mlp_dtype`` (autocast) and
+        the last layer in the parameters' dtype."""
+        n, nt = feats.shape[0], tau_t.shape[0]
+        with torch.autocast(device_type=feats.device.type, dtype=self.mlp_dtype):
+            a_theta, a_gamma = self._first_layer(feats, gamma)
+            h = (a_theta[None] + a_gamma[:, None]).reshape(nt * n, -1)
+            for layer in self.layers[1:-1]:
+                h = layer(torch.relu(h))
+        h = self.layers[-1](torch.relu(h).to(feats.dtype)).reshape(nt, n, -1)
+        return (tau_t - self.cfg.canonical_time)[:, None, None] * h
 
     # ---- a frozen Phi (the trainer's phases.freeze_decoder) ---------------------------------------
     def freeze(self, on: bool) -> None:

@@ -6,7 +6,7 @@ take the most device and host time (torch.profiler), for one dataset and config.
 
 Runs the trainer's own ``step`` (no time budget, no densify) for K steps in phase 1, 2 (window
 over the whole clip) and 3, synchronising around each timed block, then profiles K steps of
-phase 3. A diagnostic for choosing what to speed up; the figures that count are the
+phase 3 (or --profile-phase). A diagnostic for choosing what to speed up; the figures that count are the
 reconstruction benchmarks' (BENCHMARKS.md).
 """
 
@@ -35,6 +35,7 @@ def main() -> None:
     ap.add_argument("--config", default=None)
     ap.add_argument("--particles", type=int, default=40000)
     ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--profile-phase", type=int, default=3, choices=(1, 2, 3), help="the phase profiled")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     dev = torch.device(a.device)
@@ -65,9 +66,10 @@ def main() -> None:
     from torch.profiler import ProfilerActivity, profile
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    tr.phase = a.profile_phase
     with profile(activities=acts) as prof:
         for _ in range(a.steps):
-            tr.step(0.5, 0.5)
+            tr.step(0.95 if a.profile_phase == 2 else 0.5, 0.5)
         sync()
     ka = prof.key_averages()
     n = a.steps

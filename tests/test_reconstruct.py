@@ -14,7 +14,7 @@ from gf_core.evaluate import evaluate
 from gf_core.io import read_recon
 from gf_core.model import FluidModel
 from gf_core.recon_config import ReconConfig, make_config
-from gf_core.reconstruct import ReconstructionError, Trainer, loss_weights, reconstruct
+from gf_core.reconstruct import ReconstructionError, Trainer, loss_weights, mlp_low_precision, reconstruct
 from gf_core.synthetic import falling_blob, splat_dataset
 from gf_core.temporal import Decoder, DecoderConfig, TimeMap
 
@@ -98,6 +98,37 @@ def test_frozen_decoder_reuses_its_output_and_trains_only_the_residuals(monkeypa
     assert not torch.allclose(again["dp"], live["dp"])
     d.forward_many(taus)["dp"].sum().backward()     # unfrozen: Phi trains again
     assert d.features.grad is not None and d.layers[-1].weight.grad is not None
+
+
+def test_bfloat16_training_passes_stay_close_to_float32_and_the_rest_is_float32():
+    """train.mlp_precision: with Decoder.mlp_dtype = bfloat16, passes that record gradients run the
+    first and hidden layers in bfloat16 (close to float32, same gradient direction); passes without
+    gradients and velocities are the float32 decoder exactly."""
+    torch.manual_seed(3)
+    d = Decoder(400, DecoderConfig(residuals=True), knots=[0.0, 0.5, 1.0])
+    with torch.no_grad():
+        for p in d.parameters():
+            p.normal_(0, 0.1)
+    taus = [0.3, 0.8]
+    ref = d.forward_many(taus)
+    g_ref = torch.autograd.grad(ref["dp"].square().sum(), d.features)[0]
+    d.mlp_dtype = torch.bfloat16
+    low = d.forward_many(taus)
+    g_low = torch.autograd.grad(low["dp"].square().sum(), d.features)[0]
+    for k in ref:
+        assert low[k].dtype == torch.float32
+        err = float((low[k] - ref[k]).norm() / ref[k].norm())
+        assert 0 < err < 0.02, (k, err)      # bf16 (8-bit mantissa) rounding, and not float32 by accident
+    assert float(torch.nn.functional.cosine_similarity(g_low.flatten(), g_ref.flatten(), dim=0)) > 0.99
+    with torch.no_grad():
+        exact = d.forward_many(taus)
+    assert all(torch.equal(exact[k], ref[k].detach()) for k in ref)
+    vel = d.forward_many(taus, with_velocity=True)
+    assert torch.equal(vel["dp"], ref["dp"])
+    assert not mlp_low_precision("auto", "cuda") and not mlp_low_precision("float32", "cpu")
+    assert mlp_low_precision("bfloat16", "cpu")
+    with pytest.raises(InputError, match="train.mlp_precision must be auto, float32 or bfloat16"):
+        small_config(train={"mlp_precision": "half"}).validate()
 
 
 def test_frozen_decoder_leaves_theta_and_phi_as_phase_2_left_them(blob, tmp_path):
