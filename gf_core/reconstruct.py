@@ -244,6 +244,7 @@ class Trainer:
         self.dataset_meta = dict(train_ds.meta)
         self._sil, self._camt = {}, {}  # per training image: silhouette tensors, camera tensors
         self._floor = {}  # per training time: the wet floor (_floor_points; loss.floor, loss.settle)
+        self._held_up = {}  # per training time: (its neighbour lists, losses.unsupported on them) for loss.settle
         self._train_ds = train_ds
         tau0 = cfg.decoder.canonical_time
         t_target = self.time_map.t_min + tau0 * self.time_map.duration
@@ -564,7 +565,13 @@ class Trainer:
                             / self.spacing).long()
             inside = (q[:, 0] >= 0) & (q[:, 0] < wet.shape[0]) & (q[:, 1] >= 0) & (q[:, 1] < wet.shape[1])
             over = wet[q[:, 0].clamp(0, wet.shape[0] - 1), q[:, 1].clamp(0, wet.shape[1] - 1)] & inside
-            gate = over & L.unsupported(means.detach(), nbr, self.spacing, float(lo[2]))
+            # which particles hang unsupported: computed when the frame's neighbour lists are
+            # (re)built (density.refresh_every) and reused with them, as slowly as they change
+            held = self._held_up.get(t)
+            if held is None or held[0] is not nbr:
+                held = (nbr, L.unsupported(means.detach(), nbr, self.spacing, float(lo[2])))
+                self._held_up[t] = held
+            gate = over & held[1]
         return L.settling(pos, gate, float(lo[2]), self.spacing)
 
     def _cam_tensors(self, i: int):
