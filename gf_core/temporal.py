@@ -36,6 +36,7 @@ evaluates the same function; a test holds the two equal.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -236,38 +237,28 @@ class Decoder(nn.Module):
         n = feats.shape[0]
         nt = tau_t.shape[0]
         gamma, dgamma = encode_time(tau_t, self.cfg.n_freqs, self.cfg.include_input)  # (T, D)
-        if self.mlp_dtype is not None and not with_velocity and torch.is_grad_enabled():
-            return self._mlp_low(tau_t, gamma, feats), None
-        a_theta, a_gamma = self._first_layer(feats, gamma)                             # (N, W), (T, W)
-        h = (a_theta[None] + a_gamma[:, None]).reshape(nt * n, -1)
-        dh = None
-        if with_velocity:
-            dh = (dgamma @ self.layers[0].weight[:, self.cfg.feature_dim:].T)[:, None].expand(nt, n, -1).reshape(nt * n, -1)
-        for layer in self.layers[1:]:
+        # mlp_dtype (train.mlp_precision): the first and hidden layers of a training pass in lower
+        # precision, the last layer in the parameters' dtype
+        low = self.mlp_dtype is not None and not with_velocity and torch.is_grad_enabled()
+        with torch.autocast(device_type=feats.device.type, dtype=self.mlp_dtype) if low else contextlib.nullcontext():
+            a_theta, a_gamma = self._first_layer(feats, gamma)                         # (N, W), (T, W)
+            h = (a_theta[None] + a_gamma[:, None]).reshape(nt * n, -1)
+            dh = None
             if with_velocity:
-                mask = (h > 0).to(h.dtype)
-                dh = layer(dh * mask) - layer.bias
-            h = layer(torch.relu(h))
-        h = h.reshape(nt, n, -1)
+                dh = (dgamma @ self.layers[0].weight[:, self.cfg.feature_dim:].T)[:, None].expand(nt, n, -1).reshape(nt * n, -1)
+            for layer in self.layers[1:-1]:
+                if with_velocity:
+                    dh = layer(dh * (h > 0).to(h.dtype)) - layer.bias
+                h = layer(torch.relu(h))
+        last = self.layers[-1]
         if with_velocity:
-            dh = dh.reshape(nt, n, -1)
+            dh = (last(dh * (h > 0).to(h.dtype)) - last.bias).reshape(nt, n, -1)
+        h = last(torch.relu(h).to(feats.dtype)).reshape(nt, n, -1)
         scale = (tau_t - self.cfg.canonical_time)[:, None, None]
         vp = None
         if with_velocity:  # dp is OUTPUTS' first entry
             vp = h[..., :3] + scale * dh[..., :3]
         return scale * h, vp
-
-    def _mlp_low(self, tau_t: torch.Tensor, gamma: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        """``_mlp`` without velocities, its first and hidden layers in ``mlp_dtype`` (autocast) and
-        the last layer in the parameters' dtype."""
-        n, nt = feats.shape[0], tau_t.shape[0]
-        with torch.autocast(device_type=feats.device.type, dtype=self.mlp_dtype):
-            a_theta, a_gamma = self._first_layer(feats, gamma)
-            h = (a_theta[None] + a_gamma[:, None]).reshape(nt * n, -1)
-            for layer in self.layers[1:-1]:
-                h = layer(torch.relu(h))
-        h = self.layers[-1](torch.relu(h).to(feats.dtype)).reshape(nt, n, -1)
-        return (tau_t - self.cfg.canonical_time)[:, None, None] * h
 
     # ---- a frozen Phi (the trainer's phases.freeze_decoder) ---------------------------------------
     def freeze(self, on: bool) -> None:

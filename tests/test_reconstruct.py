@@ -393,6 +393,32 @@ def test_settle_term_moves_only_its_frames_residual(blob, tmp_path):
         assert q.grad is None or float(q.grad.abs().sum()) == 0.0
 
 
+def test_settle_gate_is_reused_with_the_neighbour_lists_and_rebuilt_with_them(blob, tmp_path, monkeypatch):
+    """losses.unsupported runs once per neighbour list of a frame: reused while the lists are,
+    recomputed (from the particles as they are then) when the lists are rebuilt."""
+    tr = Trainer(small_config(loss={"settle": 1.0, "floor": 0.0}, decoder={"residuals": True}), load_dataset(blob),
+                 out=tmp_path / "run", log=quiet)
+    tr.initialise()
+    t = float(tr.train.unique_times[2])
+    nx = int(np.ceil(0.8 / tr.spacing))
+    tr._floor[t] = (None, 0, torch.ones(nx, nx, dtype=torch.bool))
+    calls = []
+    orig = L.unsupported
+    monkeypatch.setattr(L, "unsupported", lambda p, *a: calls.append(p.clone()) or orig(p, *a))
+    means = tr.model.at(t)["means"]
+    nbr = tr._neighbors(t, means)
+    first = tr._settle_term(t, means, nbr)
+    assert float(first.detach()) > 0 and len(calls) == 1
+    assert torch.equal(tr._settle_term(t, means, nbr), first) and len(calls) == 1
+    lowered = means.detach().clone()
+    lowered[:, 2] = float(tr.model.bounds.lo[2])  # everything on the floor: nothing hangs
+    tr._settle_term(t, lowered, nbr)
+    assert len(calls) == 1  # the same lists: the gate they were built with
+    tr.version += 1  # densify/prune: new lists
+    again = tr._settle_term(t, lowered, tr._neighbors(t, lowered))
+    assert len(calls) == 2 and torch.equal(calls[1], lowered) and float(again.detach()) == 0.0
+
+
 def test_floor_points_lie_where_the_fluid_rests_on_the_floor(tmp_path):
     """The floor term's samples (Trainer._floor_samples) on a rendered scene: a pool on the floor
     plus a drop in the air. Every sample has a pool particle above it within ~one spacing, they
