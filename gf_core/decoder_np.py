@@ -218,11 +218,15 @@ class ParticleAnimation:
         self.means = np.ascontiguousarray(recon.means, np.float32)
         self.log_scales = np.ascontiguousarray(recon.log_scales, np.float32)
         self.quats = np.ascontiguousarray(recon.quats, np.float32)
-        # the domain the trainer keeps particles in (FluidModel: means clamped to the box, log-scales
-        # to their range), when recon.h5 records it
+        # the domain the trainer keeps particles in (FluidModel: means clamped to the box inset by
+        # bounds.inset, log-scales to their range), when recon.h5 records it
         b = (recon.config or {}).get("bounds")
-        self.bounds = None if not b else (np.asarray(b["lo"], np.float32), np.asarray(b["hi"], np.float32),
-                                          np.float32(b["log_scale_min"]), np.float32(b["log_scale_max"]))
+        self.bounds = None
+        if b:
+            lo, hi = np.asarray(b["lo"], np.float64), np.asarray(b["hi"], np.float64)
+            d = np.minimum(float(b.get("inset", 0.0)), 0.5 * (hi - lo))
+            self.bounds = ((lo + d).astype(np.float32), (hi - d).astype(np.float32),
+                           np.float32(b["log_scale_min"]), np.float32(b["log_scale_max"]))
         self.logit_opacity = np.asarray(recon.logit_opacity, np.float32)
         self.opacity = sigmoid(self.logit_opacity)  # at the canonical time (opacity residuals change it in time)
         self.sh = np.asarray(recon.sh, np.float32)

@@ -4,8 +4,8 @@ their velocities, and converts to and from ``recon.h5`` (``io.ReconData``).
 
 Raw parameters are what the optimiser sees (log-scales, logits, quaternions of any norm);
 ``at(t)`` returns what the renderer takes. Bounds keep every decoded particle finite and in
-the scene: log-scales are clamped to [log s_min, log s_max] and positions to the domain box
-(both derived from the scene at initialisation and stored with the model).
+the scene: log-scales are clamped to [log s_min, log s_max] and positions to the domain box inset
+by ``Bounds.inset`` (all derived from the scene at initialisation and stored with the model).
 """
 
 from __future__ import annotations
@@ -31,20 +31,36 @@ class Bounds:
     hi: tuple
     log_scale_min: float
     log_scale_max: float
+    inset: float = 0.0  # metres: particle centres stay this far inside every face of the box
 
     @property
     def extent(self) -> float:
         return float(np.linalg.norm(np.asarray(self.hi) - np.asarray(self.lo)))
 
+    def centre_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) of the particle centres: the box inset by ``inset`` on every face (a face pair
+        closer than twice the inset meets in the middle)."""
+        lo, hi = np.asarray(self.lo, np.float64), np.asarray(self.hi, np.float64)
+        d = np.minimum(self.inset, 0.5 * (hi - lo))
+        return lo + d, hi - d
+
     def to_dict(self) -> dict:
         return {"lo": list(self.lo), "hi": list(self.hi), "log_scale_min": self.log_scale_min,
-                "log_scale_max": self.log_scale_max}
+                "log_scale_max": self.log_scale_max, "inset": self.inset}
 
     @classmethod
-    def for_box(cls, lo, hi, spacing: float) -> "Bounds":
-        """Scales between 1/50 of a particle spacing and a tenth of the box diagonal."""
+    def from_dict(cls, b: dict) -> "Bounds":
+        """``to_dict``'s inverse; a recon.h5 written before ``inset`` existed has none (0)."""
+        return cls(tuple(b["lo"]), tuple(b["hi"]), float(b["log_scale_min"]), float(b["log_scale_max"]),
+                   float(b.get("inset", 0.0)))
+
+    @classmethod
+    def for_box(cls, lo, hi, spacing: float, inset: float = 0.0) -> "Bounds":
+        """Scales between 1/50 of a particle spacing and a tenth of the box diagonal; centres
+        ``inset`` metres inside the box."""
         ext = float(np.linalg.norm(np.asarray(hi, float) - np.asarray(lo, float)))
-        return cls(tuple(map(float, lo)), tuple(map(float, hi)), math.log(spacing / 50.0), math.log(0.1 * ext))
+        return cls(tuple(map(float, lo)), tuple(map(float, hi)), math.log(spacing / 50.0), math.log(0.1 * ext),
+                   float(inset))
 
 
 class FluidModel(nn.Module):
@@ -62,8 +78,9 @@ class FluidModel(nn.Module):
         self.bounds = bounds
         self.time_map = time_map
         self.decoder = decoder
-        self._lo = torch.tensor(bounds.lo, dtype=means.dtype, device=means.device)
-        self._hi = torch.tensor(bounds.hi, dtype=means.dtype, device=means.device)
+        clo, chi = bounds.centre_box()
+        self._lo = torch.tensor(clo, dtype=means.dtype, device=means.device)
+        self._hi = torch.tensor(chi, dtype=means.dtype, device=means.device)
 
     # ---- construction ----------------------------------------------------------------------------
     @classmethod
@@ -206,7 +223,7 @@ class FluidModel(nn.Module):
 
         b = r.config.get("bounds")
         if b:
-            bounds = Bounds(tuple(b["lo"]), tuple(b["hi"]), float(b["log_scale_min"]), float(b["log_scale_max"]))
+            bounds = Bounds.from_dict(b)
         else:  # a recon.h5 written by another tool: bounds from the particles themselves
             lo, hi = r.means.min(0), r.means.max(0)
             pad = 0.1 * (hi - lo + 1e-3)

@@ -30,6 +30,7 @@ class ModelConfig:
     init_scale: float = 0.5        # Gaussian std in particle spacings
     carve_threshold: float = 0.5   # alpha a carved point must see in every view that sees it
     scene_box: list = field(default_factory=list)  # [[x0, y0, z0], [x1, y1, z1]]; empty: dataset/cameras
+    wall_inset: float = 0.5        # particle centres stay this many particle spacings inside the scene box
 
 
 @dataclass
@@ -142,6 +143,8 @@ class ReconConfig:
             raise InputError(where, "model.init_particles and model.max_particles must be >= 1")
         if not 0 < m.init_opacity < 1:
             raise InputError(where, f"model.init_opacity must be in (0, 1), got {m.init_opacity}")
+        if not 0 <= m.wall_inset <= 2:
+            raise InputError(where, f"model.wall_inset must be in [0, 2] particle spacings, got {m.wall_inset}")
         if lo.background not in ("random", "black", "white", "dataset"):
             raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
         for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor", "settle", "motion"):

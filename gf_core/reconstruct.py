@@ -295,7 +295,10 @@ class Trainer:
         color = mean_foreground_color([(self.train.images[i].cpu().numpy(),
                                         None if self.train.alphas[i] is None else self.train.alphas[i].cpu().numpy())
                                        for i in canon], self.channels)
-        bounds = Bounds.for_box(lo, hi, self.spacing)
+        # a fluid particle's centre lies half a spacing from the wall it rests on, as in the simulators
+        # (model.wall_inset): clamped to the box's faces instead, a sheet on the floor sits half a
+        # spacing too low (BENCHMARKS.md, seventeenth session)
+        bounds = Bounds.for_box(lo, hi, self.spacing, mc.wall_inset * self.spacing)
         self.model = FluidModel.from_points(
             torch.as_tensor(pts, dtype=torch.float32, device=self.device), radius=mc.init_scale * self.spacing,
             color=color, opacity=mc.init_opacity, sh_degree=mc.sh_degree, channels=self.channels, bounds=bounds,
@@ -784,7 +787,7 @@ class Trainer:
             raise ReconstructionError(f"{path}: the checkpoint was made with another configuration "
                                       f"({', '.join(diff[:6])} differ); resume with the same options or use --force")
         b = st["bounds"]
-        bounds = Bounds(tuple(b["lo"]), tuple(b["hi"]), b["log_scale_min"], b["log_scale_max"])
+        bounds = Bounds.from_dict(b)
         P = {k: v.to(self.device) for k, v in st["params"].items()}
         sh = torch.cat([P["sh_dc"], P["sh_rest"]], 1)
         dec = None

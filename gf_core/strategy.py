@@ -167,8 +167,9 @@ class DensifyPrune:
         keep = ~split
         prune = torch.sigmoid(model.logit_opacity) < self.prune_opacity
         prune |= max_s > self.prune_max_scale * spacing
-        lo = torch.tensor(model.bounds.lo, device=dev, dtype=model.means.dtype)
-        hi = torch.tensor(model.bounds.hi, device=dev, dtype=model.means.dtype)
+        clo, chi = model.bounds.centre_box()
+        lo = torch.tensor(clo, device=dev, dtype=model.means.dtype)
+        hi = torch.tensor(chi, device=dev, dtype=model.means.dtype)
         prune |= ((model.means < lo) | (model.means > hi)).any(-1) | ~torch.isfinite(model.means).all(-1)
         if int((keep & ~prune).sum()) + (next(iter(new.values())).shape[0] if new else 0) < 1:
             prune[torch.argmax(torch.sigmoid(model.logit_opacity))] = False  # never prune the last one

@@ -419,6 +419,41 @@ def test_settle_gate_is_reused_with_the_neighbour_lists_and_rebuilt_with_them(bl
     assert len(calls) == 2 and torch.equal(calls[1], lowered) and float(again.detach()) == 0.0
 
 
+def test_particle_centres_stay_the_wall_inset_inside_the_box_and_old_files_have_none():
+    """Bounds.inset (model.wall_inset x spacing): decoded and projected centres are clamped to the
+    box shrunk by it on every face (a face pair nearer than twice the inset meets in the middle),
+    the numpy decoder clamps the same, it survives recon.h5, and a recon.h5 written before it
+    existed (bounds without "inset") clamps to the faces as before."""
+    from gf_core.decoder_np import ParticleAnimation
+    from gf_core.model import Bounds
+
+    b = Bounds.for_box([-0.4, -0.4, 0.0], [0.4, 0.4, 0.01], 0.02, inset=0.01)
+    clo, chi = b.centre_box()
+    assert np.allclose(clo, [-0.39, -0.39, 0.005]) and np.allclose(chi, [0.39, 0.39, 0.005])
+    assert Bounds.from_dict(b.to_dict()) == b
+    old = b.to_dict()
+    del old["inset"]
+    assert Bounds.from_dict(old).inset == 0.0
+    pts = torch.tensor([[0.0, 0.0, -0.3], [0.5, -0.5, 0.004], [0.1, 0.2, 0.9]])
+    model = FluidModel.from_points(pts, radius=0.01, color=(0.5, 0.5, 0.5), opacity=0.5, sh_degree=1, channels=3,
+                                   bounds=Bounds.for_box([-0.4, -0.4, 0.0], [0.4, 0.4, 0.8], 0.02, inset=0.01),
+                                   time_map=TimeMap(0.0, 1.0), decoder_cfg=DecoderConfig())
+    want = np.array([[0.0, 0.0, 0.01], [0.39, -0.39, 0.01], [0.1, 0.2, 0.79]])
+    with torch.no_grad():
+        assert np.allclose(model.at(0.5)["means"].numpy(), want, atol=1e-6)
+    rec = model.to_recon(config={"spacing": 0.02})
+    assert np.allclose(ParticleAnimation(rec).at(0.5)["positions"], want, atol=1e-6)
+    assert FluidModel.from_recon(rec).bounds.inset == 0.01
+    del rec.config["bounds"]["inset"]  # as version-1..3 files have them
+    with torch.no_grad():
+        assert float(FluidModel.from_recon(rec).at(0.5)["means"][0, 2]) == 0.0
+    assert float(ParticleAnimation(rec).at(0.5)["positions"][0, 2]) == 0.0
+    model.project_()
+    assert np.allclose(model.means.detach().numpy(), want, atol=1e-6)
+    with pytest.raises(InputError, match="wall_inset"):
+        make_config("water", overrides={"model": {"wall_inset": -0.1}})
+
+
 def test_floor_points_lie_where_the_fluid_rests_on_the_floor(tmp_path):
     """The floor term's samples (Trainer._floor_samples) on a rendered scene: a pool on the floor
     plus a drop in the air. Every sample has a pool particle above it within ~one spacing, they
@@ -489,6 +524,19 @@ def test_tiny_scene_reconstruction_meets_psnr_and_chamfer(blob, tmp_path):
     assert all(b["wall_s"] >= a["wall_s"] for a, b in zip(lines, lines[1:]))
     rec = read_recon(run / "recon.h5")
     assert rec.decoder is not None and rec.decoder.features.shape == (rec.num_particles, 64)
+    # model.wall_inset: every decoded centre half a trainer spacing inside the scene box, in torch
+    # and in the numpy decoder the Blender extension uses
+    from gf_core.decoder_np import ParticleAnimation
+
+    b = rec.config["bounds"]
+    assert math.isclose(b["inset"], 0.5 * rec.config["spacing"], rel_tol=1e-6)
+    model, anim = FluidModel.from_recon(rec), ParticleAnimation(rec)
+    lo, hi = np.asarray(b["lo"]) + b["inset"], np.asarray(b["hi"]) - b["inset"]
+    for t in load_dataset(blob).times:
+        with torch.no_grad():
+            p = model.at(float(t))["means"].numpy()
+        assert (p >= lo - 1e-6).all() and (p <= hi + 1e-6).all()
+        assert np.allclose(anim.at(float(t))["positions"], p, atol=1e-5)
     for png in r["plots"]:
         assert (run / png).stat().st_size > 5000
 
