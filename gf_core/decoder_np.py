@@ -191,6 +191,15 @@ class NumpyDecoder:
         return res
 
 
+def centre_box(lo, hi, inset: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the particle centres: the scene box ``lo``..``hi`` shrunk by ``inset`` metres on
+    every face (``recon.h5``'s ``config.bounds.inset``, model.wall_inset; a face pair closer than
+    twice the inset meets in the middle)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    d = np.minimum(float(inset), 0.5 * (hi - lo))
+    return lo + d, hi - d
+
+
 def sigmoid(x):
     return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float32)))
 
@@ -223,9 +232,8 @@ class ParticleAnimation:
         b = (recon.config or {}).get("bounds")
         self.bounds = None
         if b:
-            lo, hi = np.asarray(b["lo"], np.float64), np.asarray(b["hi"], np.float64)
-            d = np.minimum(float(b.get("inset", 0.0)), 0.5 * (hi - lo))
-            self.bounds = ((lo + d).astype(np.float32), (hi - d).astype(np.float32),
+            lo, hi = centre_box(b["lo"], b["hi"], b.get("inset", 0.0))
+            self.bounds = (lo.astype(np.float32), hi.astype(np.float32),
                            np.float32(b["log_scale_min"]), np.float32(b["log_scale_max"]))
         self.logit_opacity = np.asarray(recon.logit_opacity, np.float32)
         self.opacity = sigmoid(self.logit_opacity)  # at the canonical time (opacity residuals change it in time)
@@ -280,4 +288,4 @@ class ParticleAnimation:
                 out["velocities"] = d["vp"] / np.float32(self.time.duration)
         return out
 
-__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]
+__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "centre_box", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from .errors import InputError
+from .decoder_np import centre_box
 from .io import ReconData
 from .render.constants import SH_C0
 from .temporal import COLOR_OUTPUT, OPACITY_OUTPUT, RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
@@ -38,11 +39,9 @@ class Bounds:
         return float(np.linalg.norm(np.asarray(self.hi) - np.asarray(self.lo)))
 
     def centre_box(self) -> tuple[np.ndarray, np.ndarray]:
-        """(lo, hi) of the particle centres: the box inset by ``inset`` on every face (a face pair
-        closer than twice the inset meets in the middle)."""
-        lo, hi = np.asarray(self.lo, np.float64), np.asarray(self.hi, np.float64)
-        d = np.minimum(self.inset, 0.5 * (hi - lo))
-        return lo + d, hi - d
+        """(lo, hi) of the particle centres: the box inset by ``inset`` on every face
+        (``decoder_np.centre_box``, which the Blender extension's decoder uses too)."""
+        return centre_box(self.lo, self.hi, self.inset)
 
     def to_dict(self) -> dict:
         return {"lo": list(self.lo), "hi": list(self.hi), "log_scale_min": self.log_scale_min,
