@@ -111,9 +111,27 @@ def register(sub):
     c.add_argument("--per-frame", action="store_true",
                    help="fit every selected frame on its own (a static scene, no time model) for each budget pair: "
                         "the per-frame reference for a time-continuous reconstruction; writes per_frame.png")
+    c.add_argument("--time-budget", type=float, default=0.0, metavar="SECONDS",
+                   help="each run stops after this many seconds instead of at its iterations; with --per-frame the "
+                        "frames share it equally (default: none)")
+    c.add_argument("--seed", type=int, default=None, help="reconstruction seed (default: the preset's)")
     c.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     c.add_argument("--out", type=Path, default=Path("bench_reconstruct"), help="output folder (runs, JSON, PNG)")
     c.set_defaults(func=run_reconstruct)
+    m = bsub.add_parser("scenes", help="the scene matrix: every scene made, reconstructed with the default preset, judged",
+                        description="Makes every scene of a suite with gf-cli simulate and render-dataset, reconstructs "
+                                    "each with the default preset and the suite's time budget, evaluates it (held-out "
+                                    "PSNR/SSIM mean and worst frame, both Chamfer directions, coverage, particles outside "
+                                    "the container, energies against the truth) and fits every frame on its own (3DGS) "
+                                    "at the same total time. Prints the table against the suite's targets; writes "
+                                    "bench_scenes.json and a plot per scene. Steps already complete are skipped.")
+    m.add_argument("--suite", type=Path, default=None, help="suite TOML (default: gf_core/bench/scenes.toml)")
+    m.add_argument("--quick", action="store_true", help="the suite's [quick] sizes: every scene kind, tiny (minutes)")
+    m.add_argument("--only", default=None, metavar="NAME[,NAME]", help="these scenes only (default: all)")
+    m.add_argument("--seeds", default=None, metavar="S[,S]", help="reconstruction seeds (default: the suite's)")
+    m.add_argument("--no-per-frame", action="store_true", help="skip the per-frame 3DGS fits (default: run them)")
+    m.add_argument("--out", type=Path, default=Path("bench_scenes"), help="output folder (datasets, runs, JSON, PNG)")
+    m.set_defaults(func=run_scenes)
     d = bsub.add_parser("decoder", help="numpy decoder (the Blender extension's) against the torch one",
                         description="Times one evaluation of the time-continuous decoder (paper Eq. 4, default "
                                     "dimensions) for all particles at one time: numpy float32 as the Blender "
@@ -261,9 +279,12 @@ def run_reconstruct(args) -> int:
         raise InputError(args.dataset, "is not a dataset folder")
     make_config(args.preset, args.config)  # a bad config fails before any run
     frames = parse_frames(args.frames) if args.frames is not None else None
+    if not (args.time_budget >= 0 and args.time_budget < float("inf")):
+        raise InputError("--time-budget", f"must be a non-negative number of seconds, got {args.time_budget}")
     args.out.mkdir(parents=True, exist_ok=True)
     recs = bench_reconstruct(args.dataset, args.out, iterations=its, particles=ns, preset=args.preset,
-                             config_file=args.config, device=args.device, frames=frames, per_frame=args.per_frame)
+                             config_file=args.config, device=args.device, frames=frames, per_frame=args.per_frame,
+                             time_budget=args.time_budget, seed=args.seed)
     cols = [("time", "frame s", ".4f")] if args.per_frame else []
     cols += [("iterations_budget", "it budget", "d"), ("particle_budget", "N budget", "d"), ("iterations", "it", "d"),
             ("particles", "N", "d"), ("wall_s", "wall s", ".1f"), ("train_psnr", "train PSNR", ".2f")]
@@ -327,4 +348,25 @@ def run_decoder(args) -> int:
                        ("ratio_numpy_torch", "numpy/torch", ".2f"), ("max_abs_diff", "max |numpy-torch|", ".1e")]))
     atomic_write_text(args.out, json.dumps({"machine": machine(), "rows": rows}, indent=1))
     print(f"wrote {args.out}")
+    return 0
+
+
+def run_scenes(args) -> int:
+    from gf_core.bench.common import machine, table
+    from gf_core.bench.scene_bench import COLUMNS, bench_scenes, load_suite, plot_scenes, table_rows
+    from gf_core.io import atomic_write_text
+
+    _check_common(args, out_is_file=False)
+    only = [x.strip() for x in args.only.split(",") if x.strip()] if args.only else None
+    seeds = _ints(args.seeds, "--seeds", 0) if args.seeds else None
+    suite = load_suite(args.suite, quick=args.quick, only=only)
+    args.out.mkdir(parents=True, exist_ok=True)
+    recs = bench_scenes(args.out, suite, seeds=seeds, per_frame=not args.no_per_frame)
+    print()
+    cols = [c for c in COLUMNS if any(r.get(c[0]) is not None for r in recs) or c[0] in ("scene", "missed")]
+    print(table(table_rows(recs), cols))
+    plots = plot_scenes(recs, args.out)
+    atomic_write_text(args.out / "bench_scenes.json",
+                      json.dumps({"machine": machine(), "suite": suite, "records": recs}, indent=1))
+    print(f"\nwrote {args.out / 'bench_scenes.json'} and {len(plots)} plots in {args.out}")
     return 0

@@ -55,6 +55,12 @@ def register(sub):
                    help="train on these of the dataset's frame times only (python slice over the sorted times: "
                         "'0:20' the first 20, '::2' every other one; the rest are held out in time for "
                         "evaluate --upsample / predict; default: all)")
+    p.add_argument("--scene-box", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                   help="the container, metres, z up; write --scene-box=-1,... when it starts with a minus (default: the "
+                        "dataset's scene_box, else guessed from the cameras, with no floor)")
+    p.add_argument("--floor", type=str, default=None, metavar="Z",
+                   help="the floor's height alone, metres (a tank or a table whose walls are unknown; --floor=-0.1 when "
+                        "negative; default: the scene box's or the dataset's floor)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=run)
 
@@ -69,6 +75,39 @@ def check_device(device: str) -> str:
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise InputError("--device", "cuda was asked for but torch sees no CUDA GPU on this machine; use --device cpu")
     return device
+
+
+def parse_scene_box(text: str) -> list:
+    """``--scene-box X0,Y0,Z0,X1,Y1,Z1`` as [[x0, y0, z0], [x1, y1, z1]]; a bad value names the option."""
+    import math
+
+    from gf_core.errors import InputError
+
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        v = [float(p) for p in parts]
+    except ValueError:
+        v = None
+    if v is None or len(v) != 6 or not all(math.isfinite(x) for x in v):
+        raise InputError("--scene-box", f"expected six finite numbers X0,Y0,Z0,X1,Y1,Z1 (metres), got {text!r}")
+    if not all(v[i + 3] > v[i] for i in range(3)):
+        raise InputError("--scene-box", f"each maximum must exceed its minimum (X1 > X0, Y1 > Y0, Z1 > Z0), got {text!r}")
+    return [v[:3], v[3:]]
+
+
+def parse_floor(text: str) -> float:
+    """``--floor Z`` as a finite number of metres."""
+    import math
+
+    from gf_core.errors import InputError
+
+    try:
+        z = float(text)
+    except ValueError:
+        z = math.nan
+    if not math.isfinite(z):
+        raise InputError("--floor", f"expected the floor's height as one finite number (metres), got {text!r}")
+    return z
 
 
 def run(args) -> int:
@@ -98,6 +137,12 @@ def run(args) -> int:
         if not args.time_budget > 0:
             raise InputError("--time-budget", f"must be a positive number of seconds, got {args.time_budget}")
         over.setdefault("train", {})["time_budget_s"] = float(args.time_budget)
+    if args.scene_box is not None and args.floor is not None:
+        raise InputError("--floor", "give --scene-box or --floor, not both (the box's lowest z is its floor)")
+    if args.scene_box is not None:
+        over.setdefault("model", {}).update(scene_box=parse_scene_box(args.scene_box), floor=[])
+    if args.floor is not None:
+        over.setdefault("model", {}).update(floor=[parse_floor(args.floor)], scene_box=[])
     cfg = make_config(args.preset, args.config, over)
     out = args.out
     if out.exists() and not out.is_dir():

@@ -16,7 +16,8 @@ from pathlib import Path
 from gf_core.errors import GFError, InputError
 
 PASS_THROUGH = ("views", "test_views", "resolution", "samples", "seed", "frames", "material", "fov",
-                "threads")
+                "threads", "arc", "elevation", "blob", "time_format")
+OPTIONAL = ("test_elevation", "transmission")  # passed on only when given
 
 
 def register(sub):
@@ -41,6 +42,20 @@ def register(sub):
     p.add_argument("--fov", type=float, default=40.0, help="horizontal field of view in degrees (default 40)")
     p.add_argument("--show-container", action="store_true", help="let cameras see the tank (default off)")
     p.add_argument("--threads", type=int, default=0, help="render threads (default 0: all)")
+    p.add_argument("--arc", type=float, default=90.0, help="degrees the training cameras span (default 90)")
+    p.add_argument("--elevation", type=float, default=15.0, help="training cameras' elevation, degrees (default 15)")
+    p.add_argument("--test-elevation", type=float, default=None,
+                   help="held-out cameras' elevation, degrees (default: the training cameras')")
+    p.add_argument("--blob", type=float, default=2.5,
+                   help="liquid surface: spheres of this many particle radii around the particles (default 2.5)")
+    p.add_argument("--transmission", type=float, default=None,
+                   help="water: a principled surface with this transmission weight in [0, 1] instead of clear glass "
+                        "(default: glass)")
+    p.add_argument("--no-scene-box", action="store_true",
+                   help="leave the container out of the transforms files, as real footage comes (default: written)")
+    p.add_argument("--time-format", default="seconds", choices=["seconds", "dnerf"],
+                   help="frame times in seconds, or D-NeRF's 'time' in [0, 1] with the seconds in 'time_s' "
+                        "(default seconds)")
     p.add_argument("--blender", type=Path, default=None, help="a blender executable (default: PATH, else bpy)")
     p.add_argument("--force", action="store_true",
                    help="start afresh when OUT holds a dataset of another simulation or other options (default: refuse)")
@@ -61,8 +76,13 @@ def build_command(args) -> tuple[list[str], str]:
     opts = []
     for k in PASS_THROUGH:
         opts += [f"--{k.replace('_', '-')}", str(getattr(args, k))]
+    for k in OPTIONAL:
+        if getattr(args, k, None) is not None:
+            opts += [f"--{k.replace('_', '-')}", str(getattr(args, k))]
     if args.denoise:
         opts.append("--denoise")
+    if getattr(args, "no_scene_box", False):
+        opts.append("--no-scene-box")
     if args.show_container:
         opts.append("--show-container")
     if getattr(args, "force", False):
@@ -119,6 +139,15 @@ def check_options(args) -> None:
         raise InputError("--fov", f"must be an angle in (0, 180) degrees, got {args.fov}")
     if args.threads < 0:
         raise InputError("--threads", f"must be >= 0, got {args.threads}")
+    if not 0 < args.arc <= 360:
+        raise InputError("--arc", f"must be in (0, 360] degrees, got {args.arc}")
+    for flag, v in (("--elevation", args.elevation), ("--test-elevation", args.test_elevation)):
+        if v is not None and not -89 <= v <= 89:
+            raise InputError(flag, f"must be in [-89, 89] degrees, got {v}")
+    if not args.blob > 0:
+        raise InputError("--blob", f"must be a positive number of particle radii, got {args.blob}")
+    if args.transmission is not None and not 0 <= args.transmission <= 1:
+        raise InputError("--transmission", f"must be in [0, 1], got {args.transmission}")
     return parse_frames(args.frames)
 
 

@@ -4,7 +4,8 @@ Same function as ``gf_core.temporal.Decoder`` (a test holds the two equal to 1e-
 
     A^t = A^0 + (tau - tau0) * Phi(theta, gamma(tau))                                   (Eq. 4)
 
-plus, when the reconstruction has them, the residuals R(tau) - R(tau0) (linear between knots),
+plus, when the reconstruction has them, the residuals R(tau) - R(tau0) between knots (cubic
+Hermite with three-point tangents, ``hermite_coefficients``; files written before it: linear),
 and the appearance residuals (the same on the degree-0 SH coefficient, output ``dc``, and on the
 logit opacity, output ``do``).
 
@@ -29,6 +30,69 @@ import numpy as np
 from .errors import InputError
 
 OUTPUTS = {"dp": 3, "ds": 3, "dr": 4}  # position, log-scale, quaternion changes (as gf_core.temporal)
+# how the residuals R are interpolated between their knots: "hermite" (C1: positions and velocities
+# continuous across the training frames) or "linear" (recon.h5 files that do not name one)
+RESIDUAL_INTERPOLATIONS = ("hermite", "linear")
+
+
+def hermite_coefficients(knots: np.ndarray, tau: float):
+    """R(tau) and dR/dtau as weights on four knot values, for residuals interpolated with cubic
+    Hermite segments whose tangents m_j are the three-point derivatives at the knots (second-order
+    one-sided ones at the first and last knot; the chord with two knots), so that a quadratic in
+    time, such as free fall, is reproduced with its exact velocity:
+
+        interior:  m_j = -h1 / (h0 (h0 + h1)) R_{j-1} + (h1 - h0) / (h0 h1) R_j + h0 / (h1 (h0 + h1)) R_{j+1}
+        first:     m_0 = -(2 h1 + h2) / (h1 (h1 + h2)) R_0 + (h1 + h2) / (h1 h2) R_1 - h1 / (h2 (h1 + h2)) R_2
+        (h0 = k_j - k_{j-1}, h1 = k_{j+1} - k_j, h2 = k_{j+2} - k_{j+1}; the last knot mirrors the first)
+        R(tau) = H00(s) R_j + H10(s) h1 m_j + H01(s) R_{j+1} + H11(s) h1 m_{j+1},  s = (tau - k_j) / h1
+
+    Returns (indices (4,) of knots j-1..j+2 clamped to the knots, value weights (4,), derivative
+    weights (4,)); constant outside the knots (derivative 0). The torch decoder evaluates the same
+    expressions on tensors (``gf_core.temporal.hermite_coefficients``)."""
+    k = np.asarray(knots, np.float64)
+    f = len(k)
+    tc = min(max(float(tau), k[0]), k[-1])
+    j = int(np.clip(np.searchsorted(k, tc, side="right") - 1, 0, f - 2))
+    h1 = k[j + 1] - k[j]
+    m_j, m_j1 = tangent_weights(k, j, j), tangent_weights(k, j + 1, j)
+    s = (tc - k[j]) / h1  # (the torch decoder takes m_j, m_j1 from tangent_table)
+    H = (2 * s ** 3 - 3 * s ** 2 + 1, s ** 3 - 2 * s ** 2 + s, -2 * s ** 3 + 3 * s ** 2, s ** 3 - s ** 2)
+    inside = k[0] <= tau <= k[-1]
+    dH = [x / h1 if inside else 0.0 for x in (6 * s ** 2 - 6 * s, 3 * s ** 2 - 4 * s + 1, -6 * s ** 2 + 6 * s,
+                                              3 * s ** 2 - 2 * s)]
+
+    def weights(h00, h10, h01, h11):
+        return np.array([0.0, h00, h01, 0.0]) + h1 * (h10 * m_j + h11 * m_j1)
+
+    idx = np.clip(np.arange(j - 1, j + 3), 0, f - 1)
+    return idx, weights(*H), weights(*dH)
+
+
+def tangent_table(knots) -> np.ndarray:
+    """(F - 1, 2, 4): for each segment j, the tangents m_j and m_{j+1} as weights on its four knots
+    j-1..j+2 (``tangent_weights``)."""
+    k = np.asarray(knots, np.float64)
+    return np.array([[tangent_weights(k, j, j), tangent_weights(k, j + 1, j)] for j in range(len(k) - 1)])
+
+
+def tangent_weights(k: np.ndarray, i: int, j: int) -> np.ndarray:
+    """The tangent m_i at knot ``i`` (``hermite_coefficients``) as weights on the four knots
+    j-1..j+2 around segment ``j`` (``i`` is j or j + 1)."""
+    f = len(k)
+    w = np.zeros(4)
+    o = i - j + 1  # slot of knot i in the stencil j-1..j+2
+    if f == 2:
+        w[1], w[2] = -1.0 / (k[1] - k[0]), 1.0 / (k[1] - k[0])
+    elif i == 0:
+        h1, h2 = k[1] - k[0], k[2] - k[1]
+        w[o:o + 3] = (-(2 * h1 + h2) / (h1 * (h1 + h2)), (h1 + h2) / (h1 * h2), -h1 / (h2 * (h1 + h2)))
+    elif i == f - 1:
+        ha, hb = k[f - 2] - k[f - 3], k[f - 1] - k[f - 2]
+        w[o - 2:o + 1] = (hb / (ha * (ha + hb)), -(ha + hb) / (ha * hb), (2 * hb + ha) / (hb * (ha + hb)))
+    else:
+        h0, h1 = k[i] - k[i - 1], k[i + 1] - k[i]
+        w[o - 1:o + 2] = (-h1 / (h0 * (h0 + h1)), (h1 - h0) / (h0 * h1), h0 / (h1 * (h0 + h1)))
+    return w
 
 
 @dataclass
@@ -108,6 +172,7 @@ class NumpyDecoder:
         # Delta A = (tau - tau0) Phi + R(tau) - R(tau0)
         self.residuals = None if getattr(data, "residuals", None) is None else \
             np.ascontiguousarray(data.residuals, np.float32)
+        self.interpolation = residual_interpolation(enc)
         self.knots = None if self.residuals is None else np.asarray(data.residual_knots, np.float64)
         if self.residuals is not None:
             self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
@@ -124,6 +189,11 @@ class NumpyDecoder:
         constant (slope 0) outside the knots."""
         values = self.residuals if values is None else values
         k = self.knots
+        if self.interpolation == "hermite":
+            idx, wv, wd = hermite_coefficients(k, tau)
+            rows = values[:, idx]  # (N, 4, k)
+            return np.einsum("nfk,f->nk", rows, wv.astype(np.float32)), \
+                np.einsum("nfk,f->nk", rows, wd.astype(np.float32))
         tc = min(max(tau, k[0]), k[-1])
         j = int(np.clip(np.searchsorted(k, tc, side="right") - 1, 0, len(k) - 2))
         span = k[j + 1] - k[j]
@@ -189,6 +259,14 @@ class NumpyDecoder:
             if values is not None:
                 res[name] = self._residual(tau, values)[0] - self._residual(self.canonical_time, values)[0]
         return res
+
+
+def residual_interpolation(encoding: dict) -> str:
+    """The residuals' interpolation named in a decoder's encoding (recon.h5); "linear" when absent."""
+    v = encoding.get("residual_interpolation", "linear")
+    if v not in RESIDUAL_INTERPOLATIONS:
+        raise InputError("recon.h5 decoder", f"residual_interpolation {v!r} is not one of {', '.join(RESIDUAL_INTERPOLATIONS)}")
+    return v
 
 
 def centre_box(lo, hi, inset: float) -> tuple[np.ndarray, np.ndarray]:
@@ -288,4 +366,5 @@ class ParticleAnimation:
                 out["velocities"] = d["vp"] / np.float32(self.time.duration)
         return out
 
-__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "centre_box", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]
+__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "centre_box", "hermite_coefficients", "tangent_table", "residual_interpolation",
+           "RESIDUAL_INTERPOLATIONS", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]

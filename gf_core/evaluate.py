@@ -128,8 +128,11 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
             if abs(sim.times[f] - t) > 0.5 / sim.fps + 1e-9:
                 continue
             p = st["means"].cpu().numpy()
+            # the true container: a reconstructed centre beyond its walls is fluid where none can be
+            outside = float(np.any((p < np.asarray(sim.domain_min)) | (p > np.asarray(sim.domain_max)), 1).mean()) \
+                if len(p) else 0.0
             rows.append({"time": float(t), "gt_frame": f, **particle_error(p, sim.positions[f], spacing),
-                         **transport_distance(p, sim.positions[f], spacing)})
+                         **transport_distance(p, sim.positions[f], spacing), "outside_container": outside})
         if rows:
             result["particles_vs_gt"] = {
                 "gt": str(gt_file), "spacing": spacing, "per_frame": rows,
@@ -138,6 +141,7 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
                 "gt_to_recon_max_frame": float(max(x["gt_to_recon"] for x in rows)),
                 "recon_to_gt_max_frame": float(max(x["recon_to_gt"] for x in rows)),
                 "gt_within_1_mean": float(np.mean([x["gt_to_recon_within_1"] for x in rows])),
+                "outside_container_max_frame": float(max(x["outside_container"] for x in rows)),
                 "emd_mean": float(np.mean([x["emd"] for x in rows])),
                 "emd_solver": "exact assignment (scipy linear_sum_assignment) of equal random subsamples of "
                               f"at most {rows[0]['emd_samples']} particles",
@@ -147,6 +151,7 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
             log(f"particles vs ground truth (spacing {spacing:.4g} m): true->recon {pv['gt_to_recon_mean']:.3f}, "
                 f"recon->true {pv['recon_to_gt_mean']:.3f} spacings (worst frame {pv['gt_to_recon_max_frame']:.3f} / "
                 f"{pv['recon_to_gt_max_frame']:.3f}); {100 * pv['gt_within_1_mean']:.1f}% of true particles covered; "
+                f"at most {100 * pv['outside_container_max_frame']:.1f}% of the particles outside the true container; "
                 f"earth mover's distance {pv['emd_mean']:.3f} spacings (subsampling floor {pv['emd_floor']:.3f})")
     result["training"] = r.metrics
     metrics_file = (run if run.is_dir() else run.parent) / "metrics.jsonl"

@@ -30,6 +30,7 @@ class ModelConfig:
     init_scale: float = 0.5        # Gaussian std in particle spacings
     carve_threshold: float = 0.5   # alpha a carved point must see in every view that sees it
     scene_box: list = field(default_factory=list)  # [[x0, y0, z0], [x1, y1, z1]]; empty: dataset/cameras
+    floor: list = field(default_factory=list)      # [z]: the floor's height alone (metres); empty: unknown
     wall_inset: float = 0.5        # particle centres stay this many particle spacings inside the scene box
 
 
@@ -143,6 +144,21 @@ class ReconConfig:
             raise InputError(where, "model.init_particles and model.max_particles must be >= 1")
         if not 0 < m.init_opacity < 1:
             raise InputError(where, f"model.init_opacity must be in (0, 1), got {m.init_opacity}")
+        if m.scene_box:
+            import numpy as np
+
+            try:
+                a = np.asarray(m.scene_box, np.float64)
+            except (TypeError, ValueError):
+                a = None
+            if a is None or a.shape != (2, 3) or not np.all(np.isfinite(a)) or np.any(a[1] <= a[0]):
+                raise InputError(where, f"model.scene_box must be [[x0, y0, z0], [x1, y1, z1]] with x1 > x0, "
+                                        f"y1 > y0, z1 > z0 (metres), got {m.scene_box!r}")
+        if m.floor and (len(m.floor) != 1 or isinstance(m.floor[0], bool) or not isinstance(m.floor[0], (int, float))
+                        or m.floor[0] != m.floor[0] or abs(m.floor[0]) == float("inf")):
+            raise InputError(where, f"model.floor must be [] or [z] with one finite height in metres, got {m.floor!r}")
+        if m.floor and m.scene_box:
+            raise InputError(where, "model.floor and model.scene_box exclude each other (the box's lowest z is its floor)")
         if not 0 <= m.wall_inset <= 2:
             raise InputError(where, f"model.wall_inset must be in [0, 2] particle spacings, got {m.wall_inset}")
         if lo.background not in ("random", "black", "white", "dataset"):

@@ -1,9 +1,11 @@
 """The three-phase GaussFluids trainer (paper Sec. 4.1.2): composes the model (``model``,
 ``temporal``), the losses (``losses``), densify/prune (``strategy``) and the renderer.
 
-Phases (each ends when its smoothed image loss stops improving -- the plateau test below -- or
-at its cap, a fraction of the iteration budget, or with a time budget at its share of the seconds,
-``phases.time_fractions``):
+Phases (without a time budget each ends when its smoothed image loss stops improving -- the
+plateau test below -- or at its cap, a fraction of the iteration budget; with a time budget,
+``train.time_budget_s``, each runs for its share of the seconds, ``phases.time_fractions``, and
+the last one to the end of the budget, whatever the iteration count; the log and recon.h5's
+metrics say why each phase ended):
 1. canonical frame only, 3DGS-style: lambda_d = 0, lambda_a and lambda_v at 10% of their final
    values; canonical particles only (no decoder).
 2. every frame: random (time, views) samples, the decoder on (theta at lr 1e-2, Phi at 1e-4, the
@@ -264,6 +266,8 @@ class Trainer:
         self.nbr_cache: dict = {}
         self.frame_err = np.full(len(times), np.nan)  # smoothed image MSE per training frame
         self.version = 0
+        self._phase_progress = 0.0
+        self.phase_end_reasons = []  # why each phase ended (logged, and in recon.h5's metrics)
         self.model = None
         self.opt = None
 
@@ -271,11 +275,13 @@ class Trainer:
     def initialise(self) -> None:
         cfg, mc = self.cfg, self.cfg.model
         canon = self.train.at_time(self.t_canon)
-        lo, hi, src = scene_box(mc.scene_box, self._train_ds, [self.train.cameras[i] for i in canon])
+        lo, hi, src = scene_box(mc.scene_box, self._train_ds, [self.train.cameras[i] for i in canon], mc.floor)
         self.box_source = src
-        if (cfg.loss.floor > 0 or cfg.loss.settle > 0) and src == "cameras":
-            self.log("loss.floor and loss.settle are off: the scene box comes from the cameras, so there is no "
-                     "known floor (give model.scene_box, or a dataset scene_box)")
+        if src == "cameras":
+            self.log("warning: no scene box and no floor are known (none given, none in the dataset), so the box is "
+                     "guessed from the cameras: nothing keeps particles inside the real container or above its "
+                     "floor, and the floor and settle terms are off. Give the container with --scene-box "
+                     "X0,Y0,Z0,X1,Y1,Z1 or at least its floor with --floor Z (metres, z up).")
         if cfg.loss.settle > 0 and not self.static and not cfg.decoder.residuals:
             self.log("loss.settle is off: it acts through the decoder residuals (decoder.residuals = false)")
         n0 = min(mc.init_particles, mc.max_particles)
@@ -376,16 +382,17 @@ class Trainer:
         return budget * sum(caps[:phase]) / max(sum(caps), 1)
 
     def schedule_progress(self, now: float) -> tuple[float, float]:
-        """(progress of the current phase towards its cap, progress of the whole run), each in
-        [0, 1], by iterations or, with a time budget, by seconds, whichever is further."""
-        phase = self.phase_it / max(self.phase_cap(self.phase), 1)
-        run = self.iteration / max(self.cfg.phases.iterations, 1)
+        """(progress of the current phase towards its end, progress of the whole run), each in
+        [0, 1]: by iterations towards the phase caps, or, with a time budget, by seconds towards
+        the phase's share of it."""
         budget = self.cfg.train.time_budget_s
-        if budget > 0:
+        if budget > 0:  # the seconds alone: phases.iterations does not apply
             span = self.phase_deadline(self.phase) - self.phase_t0
-            phase = max(phase, (now - self.phase_t0) / max(span, 1e-9))
-            run = max(run, now / budget)
-        return min(phase, 1.0), min(run, 1.0)
+            phase, run = (now - self.phase_t0) / max(span, 1e-9), now / budget
+        else:
+            phase = self.phase_it / max(self.phase_cap(self.phase), 1)
+            run = self.iteration / max(self.cfg.phases.iterations, 1)
+        return min(max(phase, 0.0), 1.0), min(max(run, 0.0), 1.0)
 
     def ramp(self, phase_progress: float) -> float:
         return min(1.0, phase_progress / max(self.cfg.phases.min_fraction, 1e-9))
@@ -723,7 +730,10 @@ class Trainer:
         dc = self.cfg.densify
         if not dc.enabled or self.phase not in dc.phases:
             return {}
-        self.strategy.stop = int(dc.stop_fraction * self.phase_cap(self.phase))
+        if self.cfg.train.time_budget_s > 0:  # the last (1 - stop_fraction) of the phase's seconds: no refinement
+            self.strategy.stop = self.phase_it + 1 if self._phase_progress < dc.stop_fraction else 0
+        else:
+            self.strategy.stop = int(dc.stop_fraction * self.phase_cap(self.phase))
         rep = self.strategy.refine(self.phase_it, self.model, self.opt, self.spacing, generator=self.gen)
         if rep and (rep["cloned"] or rep["split"] or rep["pruned"]):
             self.version += 1
@@ -759,7 +769,8 @@ class Trainer:
                 "mlp": None if m.decoder is None else {k: v.cpu() for k, v in m.decoder.layers.state_dict().items()},
                 "optimizer": self.opt.state_dict(), "plateau": self.plateau.state(),
                 "rng_torch": self.gen.get_state(), "rng_numpy": json.dumps(self.np_rng.bit_generator.state),
-                "total_bad_steps": self.total_bad_steps, "frame_err": self.frame_err.tolist()}
+                "total_bad_steps": self.total_bad_steps, "frame_err": self.frame_err.tolist(),
+                "phase_ends": list(self.phase_end_reasons)}
 
     def save_checkpoint(self) -> Path:
         # neighbour lists are not stored: drop them here too, so that a resumed run rebuilds them
@@ -809,6 +820,7 @@ class Trainer:
         self.elapsed = st["elapsed"]
         self.phase_t0 = st.get("phase_t0", 0.0)
         self.total_bad_steps = st.get("total_bad_steps", 0)
+        self.phase_end_reasons = list(st.get("phase_ends", []))
         if "frame_err" in st:
             self.frame_err = np.asarray(st["frame_err"], np.float64)
         self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
@@ -852,8 +864,12 @@ class Trainer:
                 budget = self.cfg.train.time_budget_s
                 while self.phase <= 3:
                     if budget > 0 and time.perf_counter() - t_start > budget:
-                        self.log(f"time budget of {budget:g} s reached at iteration {self.iteration} (phase "
-                                 f"{self.phase}); writing the result")
+                        now = time.perf_counter() - t_start
+                        reason = f"the time budget of {budget:g} s is used"
+                        self.log(f"phase {self.phase} ends at iteration {self.iteration} ({self.phase_it} iterations, "
+                                 f"{now:.0f} s): {reason}; writing the result")
+                        self.phase_end_reasons.append({"phase": self.phase, "iteration": self.iteration,
+                                                       "wall_s": round(now, 3), "reason": reason})
                         break
                     cap = self.phase_cap(self.phase)
                     now = time.perf_counter() - t_start
@@ -861,10 +877,22 @@ class Trainer:
                     late = now >= self.phase_deadline(self.phase)
                     ramped = self.ramp(phase_progress) >= 1.0 and \
                         (self.phase != 2 or phase_progress >= self.cfg.phases.time_curriculum)
-                    if self.phase_it >= cap or late or (ramped and self.plateau.reached(self.phase_it)):
-                        reason = "cap" if self.phase_it >= cap else ("time" if late else "plateau")
+                    # with a time budget a phase ends at its share of the seconds and nothing else (the
+                    # iteration caps and the plateau test are for runs without one)
+                    if budget > 0:
+                        reason = "its share of the time budget is used" if late else None
+                    elif self.phase_it >= cap:
+                        reason = f"its iteration cap ({cap}, phases.iterations x its fraction)"
+                    elif ramped and self.plateau.reached(self.phase_it):
+                        reason = (f"plateau: the smoothed image loss improved less than {self.cfg.phases.plateau_tol:g} "
+                                  f"over {self.cfg.phases.plateau_window} iterations")
+                    else:
+                        reason = None
+                    if reason is not None:
                         self.log(f"phase {self.phase} ends at iteration {self.iteration} ({self.phase_it} "
-                                 f"iterations, {reason}); {len(self.model)} particles")
+                                 f"iterations, {now:.0f} s): {reason}; {len(self.model)} particles")
+                        self.phase_end_reasons.append({"phase": self.phase, "iteration": self.iteration,
+                                                       "wall_s": round(now, 3), "reason": reason})
                         self.phase += 1
                         self.phase_it = 0
                         self.phase_t0 = now
@@ -875,6 +903,7 @@ class Trainer:
                         self.save_checkpoint()
                         continue
                     self.elapsed = now
+                    self._phase_progress = phase_progress
                     rec = self.step(phase_progress, run_progress)
                     self.iteration += 1
                     self.phase_it += 1
@@ -922,7 +951,7 @@ class Trainer:
         metrics = {"iterations": self.iteration, "wall_s": self.elapsed, "particles": len(self.model),
                    "train_psnr_last": acc["psnr"] / acc["n"] if acc["n"] else None,
                    "test_psnr": final_test if final_test is not None else last_test,
-                   "bad_steps": self.total_bad_steps}
+                   "bad_steps": self.total_bad_steps, "phase_ends": self.phase_end_reasons}
         self.save_checkpoint()
         path = self.write_result(metrics)
         self.log(f"wrote {path}: {len(self.model)} particles, {self.iteration} iterations in {self.elapsed:.1f} s"

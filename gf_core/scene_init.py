@@ -1,9 +1,11 @@
 """Where the particles start: the scene box, and the visual hull carved from alpha masks.
 
-Scene box, in order: the config's ``model.scene_box``; the dataset's ``scene_box`` (written by
-``gf-cli render-dataset``: the simulation's domain); else derived from the cameras: the point
-nearest to every optical axis (least squares) with a half-size of the smallest half-width that
-any camera sees at that distance.
+Scene box, in order: the config's ``model.scene_box`` (``gf-cli reconstruct --scene-box``); the
+dataset's ``scene_box`` (written by ``gf-cli render-dataset``: the simulation's domain); else
+derived from the cameras: the point nearest to every optical axis (least squares) with a
+half-size of the smallest half-width that any camera sees at that distance. A floor height alone
+(``model.floor``, ``--floor``, or a dataset's ``floor``: a tank or a table whose walls are not
+known) replaces the box's lowest z; the box's own floor is known only when the box is given.
 
 Carving (space carving, Kutulakos & Seitz 2000): candidate points drawn uniformly in the box are
 kept when they project onto alpha >= threshold in every view that sees them (and at least one
@@ -42,8 +44,9 @@ def box_from_cameras(cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
     return centre - half, centre + half
 
 
-def scene_box(cfg_box, dataset, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, str]:
-    """(lo, hi, source) of the scene box."""
+def scene_box(cfg_box, dataset, cameras: list[Camera], cfg_floor=()) -> tuple[np.ndarray, np.ndarray, str]:
+    """(lo, hi, source) of the scene box. ``source`` is "config", "dataset", "cameras" (no floor
+    known) or "cameras, floor from config|dataset"."""
     for box, src in ((cfg_box, "config"), (dataset.meta.get("scene_box"), "dataset")):
         if box:
             a = np.asarray(box, np.float64)
@@ -51,6 +54,13 @@ def scene_box(cfg_box, dataset, cameras: list[Camera]) -> tuple[np.ndarray, np.n
                 raise InputError(src, f"scene_box must be [[x0, y0, z0], [x1, y1, z1]] with x1 > x0 ..., got {box}")
             return a[0], a[1], src
     lo, hi = box_from_cameras(cameras)
+    for floor, src in ((list(cfg_floor or ()), "config"), ([dataset.meta["floor"]] if "floor" in dataset.meta else [], "dataset")):
+        if floor:
+            z = float(floor[0])
+            if z >= hi[2]:
+                raise InputError(f"floor ({src})", f"the floor z = {z:g} m lies above the cameras' view of the "
+                                                   f"scene (which ends at z = {hi[2]:.3g} m)")
+            return np.array([lo[0], lo[1], z]), hi, f"cameras, floor from {src}"
     return lo, hi, "cameras"
 
 

@@ -16,11 +16,16 @@ pass with the ReLU masks of the forward pass), not from finite differences:
     d(Delta p)/dtau = Phi_p + (tau - tau0) dPhi_p/dtau,   dp/dt = d(Delta p)/dtau / (t_max - t_min).
 
 Optional residuals (``DecoderConfig.residuals``, not in the paper): per-particle corrections R_i
-at knots (the training frames' tau), linear in tau between them and constant outside,
+at knots (the training frames' tau), interpolated between them and constant outside,
 
     Delta A^t = (tau - tau0) * Phi(theta, gamma(tau)) + R(tau) - R(tau0),
 
-still exactly A^0 at tau0 and continuous in time; their velocity is the slope between knots. All
+still exactly A^0 at tau0. ``DecoderConfig.residual_interpolation = "hermite"`` joins the knots
+with cubic Hermite segments whose tangents are the three-point derivatives at the knots
+(``hermite_coefficients``): positions and velocities are continuous across the training frames,
+and a particle in free fall (positions quadratic in time) gets its exact velocity. "linear" (the
+files written before it) joins them with straight pieces, whose velocity jumps at every frame. At
+a knot both give R_j exactly, so a step at the training frames trains the same values either way. All
 T times of a training step go through the MLP as one batch (``forward_many``).
 
 Optional appearance residuals (not in the paper, they need the pose residuals' knots): the same
@@ -45,7 +50,7 @@ import torch
 from torch import nn
 
 # TimeMap (seconds <-> tau) and the output layout are shared with the numpy twin, which needs no torch
-from .decoder_np import OUTPUTS, TimeMap
+from .decoder_np import OUTPUTS, RESIDUAL_INTERPOLATIONS, TimeMap, residual_interpolation, tangent_table
 from .errors import InputError
 
 RESIDUAL_PREFIX = "residual_"  # parameter names: residual_dp, residual_ds, residual_dr (, residual_dc, residual_do)
@@ -64,6 +69,7 @@ class DecoderConfig:
     residuals: bool = False      # per-particle pose corrections at the training frames (not in the paper)
     color_residuals: bool = False  # per-particle base-colour corrections at the same knots (not in the paper)
     opacity_residuals: bool = False  # per-particle logit-opacity corrections at the same knots (not in the paper)
+    residual_interpolation: str = "hermite"  # between the knots: "hermite" (C1) or "linear"
 
     def validate(self) -> "DecoderConfig":
         for k in ("feature_dim", "hidden_layers", "hidden_width"):
@@ -76,6 +82,9 @@ class DecoderConfig:
         for k in ("color_residuals", "opacity_residuals"):
             if getattr(self, k) and not self.residuals:
                 raise InputError("decoder config", f"{k} need residuals = true (they share its knots)")
+        if self.residual_interpolation not in RESIDUAL_INTERPOLATIONS:
+            raise InputError("decoder config", f"residual_interpolation must be one of "
+                                               f"{', '.join(RESIDUAL_INTERPOLATIONS)}, got {self.residual_interpolation!r}")
         if int(self.n_freqs) == 0 and not self.include_input:
             raise InputError("decoder config", "the time encoding is empty (n_freqs 0 and no include_input)")
         return self
@@ -100,6 +109,33 @@ def encode_time(tau: torch.Tensor, n_freqs: int, include_input: bool = True) -> 
     return torch.cat(parts, -1), torch.cat(dparts, -1)
 
 
+def hermite_coefficients(knots: torch.Tensor, tangents: torch.Tensor, tau_t: torch.Tensor):
+    """The cubic Hermite residual interpolation of ``gf_core.decoder_np.hermite_coefficients`` (its
+    docstring has the equations) for T times at once, with ``tangents`` = ``tangent_table(knots)``:
+    (indices (T, 4) of knots j-1..j+2 clamped, value weights (T, 4), derivative weights (T, 4))."""
+    k = knots
+    f = k.numel()
+    t = tau_t.detach()
+    tc = t.clamp(k[0], k[-1])
+    j = (torch.searchsorted(k, tc, right=True) - 1).clamp(0, f - 2)
+    h1 = k[j + 1] - k[j]
+    s = (tc - k[j]) / h1
+    s2, s3 = s * s, s * s * s
+    m = tangents[j]  # (T, 2, 4): m_j, m_{j+1}
+    e1 = torch.zeros(t.shape[0], 4, dtype=k.dtype, device=k.device)
+    e2 = e1.clone()
+    e1[:, 1], e2[:, 2] = 1.0, 1.0
+
+    def weights(h00, h10, h01, h11):
+        return h00[:, None] * e1 + h01[:, None] * e2 + h1[:, None] * (h10[:, None] * m[:, 0] + h11[:, None] * m[:, 1])
+
+    inside = ((t >= k[0]) & (t <= k[-1])).to(k.dtype)
+    wv = weights(2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2)
+    wd = weights(6 * s2 - 6 * s, 3 * s2 - 4 * s + 1, -6 * s2 + 6 * s, 3 * s2 - 2 * s) * (inside / h1)[:, None]
+    idx = (j[:, None] + torch.arange(-1, 3, device=j.device)).clamp(0, f - 1)
+    return idx, wv, wd
+
+
 class Decoder(nn.Module):
     """Phi: per-particle features theta (N, N_theta) and the shared MLP.
 
@@ -121,6 +157,9 @@ class Decoder(nn.Module):
             if kn.ndim != 1 or kn.numel() < 2 or not bool((kn[1:] > kn[:-1]).all()):
                 raise InputError("decoder config", "residuals need at least 2 increasing knots (the frames' tau)")
             self.knots = kn.to(dtype=dtype, device=device)
+            # the Hermite tangents' weights per segment, fixed with the knots (residual_interpolation)
+            self.register_buffer("tangents", torch.as_tensor(tangent_table(kn.numpy()), dtype=dtype, device=device),
+                                 persistent=False)
             # R is 0 at the canonical frame's knot (it would only shift every other frame)
             self.knot_free = ((self.knots - c.canonical_time).abs() > 1e-6).to(dtype)
             widths = dict(OUTPUTS, **({COLOR_OUTPUT: int(channels)} if c.color_residuals else {}),
@@ -167,10 +206,14 @@ class Decoder(nn.Module):
                 if on and self.knots is not None]
 
     def _residual_at(self, tau_t: torch.Tensor, name: str):
-        """R(tau) (T, N, k) and dR/dtau (T, N, k) of output ``name``: linear between the knots,
-        constant outside them."""
+        """R(tau) (T, N, k) and dR/dtau (T, N, k) of output ``name``: between the knots as
+        ``cfg.residual_interpolation`` says, constant outside them."""
         k = self.knots
         r, free = getattr(self, RESIDUAL_PREFIX + name), self.knot_free
+        if self.cfg.residual_interpolation == "hermite":
+            idx, wv, wd = hermite_coefficients(k, self.tangents, tau_t)
+            rows = r[:, idx] * free[idx][None, :, :, None]  # (N, T, 4, k): the four knots' rows only
+            return torch.einsum("ntfk,tf->tnk", rows, wv.to(r.dtype)), torch.einsum("ntfk,tf->tnk", rows, wd.to(r.dtype))
         tc = tau_t.clamp(k[0], k[-1])
         j = (torch.searchsorted(k, tc.detach(), right=True) - 1).clamp(0, k.numel() - 2)
         span = k[j + 1] - k[j]
@@ -311,7 +354,8 @@ class Decoder(nn.Module):
         op = appearance(OPACITY_OUTPUT)
         return DecoderData(features=self.features.detach().cpu().numpy(), layers=layers,
                            encoding={"n_freqs": c.n_freqs, "include_input": c.include_input,
-                                     "canonical_time": c.canonical_time, "time_scaling": "tau - tau0"},
+                                     "canonical_time": c.canonical_time, "time_scaling": "tau - tau0",
+                                     "residual_interpolation": c.residual_interpolation},
                            outputs=dict(OUTPUTS), activation="relu",
                            residuals=None if not res else
                            torch.cat([(v * self.knot_free[None, :, None]).detach() for v in res.values()], -1).cpu().numpy(),
@@ -335,7 +379,8 @@ class Decoder(nn.Module):
                             hidden_width=d.layers[0][0].shape[0], n_freqs=int(enc.get("n_freqs", 0)),
                             include_input=bool(enc.get("include_input", True)),
                             canonical_time=float(enc.get("canonical_time", 0.0)), residuals=res is not None,
-                            color_residuals=col is not None, opacity_residuals=op is not None)
+                            color_residuals=col is not None, opacity_residuals=op is not None,
+                            residual_interpolation=residual_interpolation(enc))
         if d.layers[0][0].shape[1] != feat_dim + cfg.encoding_dim:
             raise InputError("recon.h5 decoder", f"first layer takes {d.layers[0][0].shape[1]} inputs; "
                                                  f"features ({feat_dim}) + encoding ({cfg.encoding_dim}) differ")
@@ -366,4 +411,4 @@ def apply_delta(canonical: dict, delta: dict) -> dict:
             "quats": canonical["quats"] + delta["dr"]}
 
 
-__all__ = ["RESIDUAL_PREFIX", "COLOR_OUTPUT", "OPACITY_OUTPUT", "Decoder", "DecoderConfig", "TimeMap", "encode_time", "apply_delta", "OUTPUTS"]
+__all__ = ["hermite_coefficients", "RESIDUAL_PREFIX", "COLOR_OUTPUT", "OPACITY_OUTPUT", "Decoder", "DecoderConfig", "TimeMap", "encode_time", "apply_delta", "OUTPUTS"]

@@ -50,6 +50,21 @@ def parse_args(argv):
     p.add_argument("--show-container", action="store_true",
                    help="let cameras see the tank and floor (default: only reflections/refractions)")
     p.add_argument("--threads", type=int, default=0, help="render threads (0: all)")
+    p.add_argument("--arc", type=float, default=90.0, help="degrees the training cameras span around the scene")
+    p.add_argument("--elevation", type=float, default=15.0, help="training cameras' elevation, degrees")
+    p.add_argument("--test-elevation", type=float, default=None,
+                   help="held-out cameras' elevation, degrees (default: the training cameras')")
+    p.add_argument("--blob", type=float, default=2.5,
+                   help="particle-to-surface radius, in particle radii (the mesh of a liquid is the surface of "
+                        "spheres this large around the particles)")
+    p.add_argument("--transmission", type=float, default=None,
+                   help="water only: a principled surface with this transmission weight in [0, 1] instead of "
+                        "clear glass")
+    p.add_argument("--no-scene-box", action="store_true",
+                   help="leave the container out of the transforms files, as real footage comes")
+    p.add_argument("--time-format", default="seconds", choices=["seconds", "dnerf"],
+                   help="'seconds': frame time in seconds; 'dnerf': 'time' normalised to [0, 1] over the clip with "
+                        "the seconds in 'time_s' and no 'fps' (as D-NeRF exports write it)")
     p.add_argument("--force", action="store_true",
                    help="start afresh when OUT holds a dataset of another simulation or other options")
     p.add_argument("--source-hash", default=None,
@@ -57,6 +72,11 @@ def parse_args(argv):
     a = p.parse_args(argv)
     if a.views < 1 or a.test_views < 0 or a.resolution < 8 or a.samples < 1:
         p.error("need views >= 1, test-views >= 0, resolution >= 8, samples >= 1")
+    if not 0 < a.arc <= 360 or not -89 <= a.elevation <= 89 or \
+            (a.test_elevation is not None and not -89 <= a.test_elevation <= 89):
+        p.error("need 0 < arc <= 360 and elevations in [-89, 89] degrees")
+    if not a.blob > 0 or (a.transmission is not None and not 0 <= a.transmission <= 1):
+        p.error("need blob > 0 and transmission in [0, 1]")
     return a
 
 
@@ -111,7 +131,7 @@ def png_ok(path: Path, size: int) -> bool:
 
 IDENTITY_FILE = "render_source.json"
 IMAGE_OPTIONS = ("views", "test_views", "resolution", "samples", "seed", "material", "fov", "show_container",
-                 "denoise")
+                 "denoise", "arc", "elevation", "test_elevation", "blob", "transmission")
 
 
 def file_sha256(path) -> str:
@@ -224,7 +244,8 @@ def main(argv=None) -> int:
         n_particles=sim["positions"].shape[1], radius=float(sim["particle_radius"]), material=material,
         domain_min=sim["domain_min"], domain_max=sim["domain_max"], views=a.views, test_views=a.test_views,
         resolution=a.resolution, samples=a.samples, seed=a.seed, denoise=a.denoise, fov_deg=a.fov,
-        show_container=a.show_container, threads=a.threads)
+        show_container=a.show_container, threads=a.threads, arc_deg=a.arc, elevation_deg=a.elevation,
+        test_elevation_deg=a.test_elevation, blob=a.blob, transmission=a.transmission)
     splits = [("train", cams)] + ([("test", tcams)] if tcams else [])
     for split, _ in splits:
         (out / split).mkdir(parents=True, exist_ok=True)
@@ -258,14 +279,24 @@ def main(argv=None) -> int:
         for fi in frames:
             for v, cam in enumerate(cs):
                 # held-out cameras are numbered after the training ones: ids name cameras, not slots
-                entries.append({"file_path": f"{split}/v{v:02d}_f{fi:05d}.png",
-                                "view_id": v + (len(cams) if split == "test" else 0),
-                                "camera_name": cam.name, "time": float(sim["times"][fi]), "frame": int(fi),
-                                "transform_matrix": [list(map(float, row)) for row in cam.matrix_world]})
+                t = float(sim["times"][fi])
+                e = {"file_path": f"{split}/v{v:02d}_f{fi:05d}.png",
+                     "view_id": v + (len(cams) if split == "test" else 0),
+                     "camera_name": cam.name, "time": t, "frame": int(fi),
+                     "transform_matrix": [list(map(float, row)) for row in cam.matrix_world]}
+                if a.time_format == "dnerf":  # [0, 1] over the rendered clip, seconds beside it
+                    t0, t1 = float(sim["times"][frames[0]]), float(sim["times"][frames[-1]])
+                    e.update(time=(t - t0) / (t1 - t0) if t1 > t0 else 0.0, time_s=t)
+                    del e["frame"]
+                entries.append(e)
         meta = {"camera_angle_x": float(cam0.angle_x), "w": a.resolution, "h": a.resolution,
                 "fps": float(sim["fps"]), "time_unit": "seconds", "background": [0.0, 0.0, 0.0],
                 "scene_box": [list(map(float, sim["domain_min"])), list(map(float, sim["domain_max"]))],
                 "frames": entries}
+        if a.time_format == "dnerf":
+            del meta["fps"], meta["time_unit"]
+        if a.no_scene_box:
+            del meta["scene_box"]
         if gt_name:
             meta["gt_particles"] = gt_name
         write_json(out / f"transforms_{split}.json", meta)

@@ -30,13 +30,21 @@ def _new_material(name: str):
     return mat, nt, out
 
 
-def make_material(kind: str):
-    """water: glass, IOR 1.33 (as the paper's data); honey: amber, transmissive, rough;
+def make_material(kind: str, transmission: float | None = None):
+    """water: glass, IOR 1.33 (as the paper's data), or with ``transmission`` a principled surface
+    of that transmission weight (partly opaque, light blue); honey: amber, transmissive, rough;
     smoke: a principled volume."""
     if kind not in MATERIALS:
         raise ValueError(f"unknown material {kind!r}; choose from {', '.join(MATERIALS)}")
     mat, nt, out = _new_material(f"gf_{kind}")
-    if kind == "water":
+    if kind == "water" and transmission is not None:
+        bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (0.55, 0.75, 0.95, 1.0)
+        bsdf.inputs["Roughness"].default_value = 0.05
+        bsdf.inputs["IOR"].default_value = 1.33
+        bsdf.inputs["Transmission Weight"].default_value = float(transmission)
+        nt.links.new(bsdf.outputs[0], out.inputs["Surface"])
+    elif kind == "water":
         bsdf = nt.nodes.new("ShaderNodeBsdfGlass")
         bsdf.inputs["Color"].default_value = (0.85, 0.93, 1.0, 1.0)
         bsdf.inputs["Roughness"].default_value = 0.0
@@ -242,13 +250,13 @@ def fluid_node_group(name: str, material, radius: float, *, volume: bool, from_m
 
 
 def build_fluid(n_particles: int, radius: float, material: str, *, voxel_scale: float = 0.5,
-                blob: float = 2.5, smooth_iterations: int = 6):
+                blob: float = 2.5, smooth_iterations: int = 6, transmission: float | None = None):
     """A mesh of ``n_particles`` vertices with a surface-building geometry-nodes modifier."""
     me = bpy.data.meshes.new("gf_particles")
     me.vertices.add(int(n_particles))
     obj = bpy.data.objects.new("gf_fluid", me)
     bpy.context.scene.collection.objects.link(obj)
-    ng = fluid_node_group("gf_surface", make_material(material), radius, volume=material == "smoke",
+    ng = fluid_node_group("gf_surface", make_material(material, transmission), radius, volume=material == "smoke",
                           voxel_scale=voxel_scale, blob=blob, smooth_iterations=smooth_iterations)
     mod = obj.modifiers.new("gf_surface", "NODES")
     mod.node_group = ng
@@ -279,16 +287,18 @@ def look_at_matrix(eye, target, up=(0.0, 0.0, 1.0)) -> Matrix:
 
 
 def camera_rig(domain_min, domain_max, *, views: int, test_views: int = 0, fov_deg: float = 40.0,
-               arc_deg: float = 90.0, elevation_deg: float = 15.0, margin: float = 1.15):
+               arc_deg: float = 90.0, elevation_deg: float = 15.0, margin: float = 1.15,
+               test_elevation_deg: float | None = None):
     """Camera-to-world matrices on a frontal arc (the -y side, as NeuroFluid's five frontal cameras),
     far enough for the whole domain to fit the field of view. Test cameras sit between the
-    training ones. Returns (train, test) lists of (name, Matrix)."""
+    training ones (at ``test_elevation_deg``, default the training cameras' elevation). Returns
+    (train, test) lists of (name, Matrix)."""
     lo, hi = np.asarray(domain_min, float), np.asarray(domain_max, float)
     target = (lo + hi) / 2
     radius = margin * 0.5 * float(np.linalg.norm(hi - lo)) / math.tan(math.radians(fov_deg) / 2)
-    el = math.radians(elevation_deg)
 
-    def at(angle):
+    def at(angle, elevation=elevation_deg):
+        el = math.radians(elevation)
         a = math.radians(angle)
         eye = target + radius * np.array([math.sin(a) * math.cos(el), -math.cos(a) * math.cos(el), math.sin(el)])
         return look_at_matrix(eye, target)
@@ -296,7 +306,8 @@ def camera_rig(domain_min, domain_max, *, views: int, test_views: int = 0, fov_d
     train = [(f"view_{k}", at(a)) for k, a in enumerate(np.linspace(-arc_deg / 2, arc_deg / 2, views))] \
         if views > 1 else [("view_0", at(0.0))]
     step = arc_deg / max(views - 1, 1)
-    test = [(f"test_{k}", at(-arc_deg / 2 + step * (k + 0.5))) for k in range(test_views)]
+    tel = elevation_deg if test_elevation_deg is None else test_elevation_deg
+    test = [(f"test_{k}", at(-arc_deg / 2 + step * (k + 0.5), tel)) for k in range(test_views)]
     return train, test
 
 
@@ -314,14 +325,17 @@ def make_camera(name: str, c2w: Matrix, fov_deg: float):
 
 def build_scene(*, n_particles: int, radius: float, material: str, domain_min, domain_max,
                 views: int, test_views: int, resolution: int, samples: int, seed: int,
-                denoise: bool, fov_deg: float = 40.0, show_container: bool = False, threads: int = 0):
+                denoise: bool, fov_deg: float = 40.0, show_container: bool = False, threads: int = 0,
+                arc_deg: float = 90.0, elevation_deg: float = 15.0, test_elevation_deg: float | None = None,
+                blob: float = 2.5, transmission: float | None = None):
     """Everything but the particle positions. Returns (fluid object, train cameras, test cameras)."""
     reset_scene()
     configure_render(resolution=resolution, samples=samples, seed=seed, denoise=denoise, threads=threads)
     build_world()
     build_container(domain_min, domain_max, show=show_container)
-    fluid = build_fluid(n_particles, radius, material)
-    train, test = camera_rig(domain_min, domain_max, views=views, test_views=test_views, fov_deg=fov_deg)
+    fluid = build_fluid(n_particles, radius, material, blob=blob, transmission=transmission)
+    train, test = camera_rig(domain_min, domain_max, views=views, test_views=test_views, fov_deg=fov_deg,
+                             arc_deg=arc_deg, elevation_deg=elevation_deg, test_elevation_deg=test_elevation_deg)
     cams = [make_camera(n, m, fov_deg) for n, m in train]
     tcams = [make_camera(n, m, fov_deg) for n, m in test]
     return fluid, cams, tcams

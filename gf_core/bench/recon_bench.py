@@ -29,10 +29,12 @@ def pareto(points: list[tuple[float, float]], higher_is_better: bool) -> list[in
 
 def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], particles: list[int], preset: str = "water",
                       config_file=None, device: str = "cpu", frames: slice | None = None, per_frame: bool = False,
-                      log=print) -> list[dict]:
+                      time_budget: float = 0.0, seed: int | None = None, log=print) -> list[dict]:
     """One record per run. With ``per_frame``, every selected frame is fitted on its own (a static
     scene: no decoder, no time model) for every budget pair: the per-frame reference that a
-    time-continuous reconstruction of the same images is measured against."""
+    time-continuous reconstruction of the same images is measured against. ``time_budget`` (s,
+    > 0): each run stops at it instead of at its iterations; per frame, the frames share it
+    equally (the same total time as one reconstruction of the clip)."""
     from ..data import load_dataset
     from ..evaluate import evaluate, read_metrics
     from ..recon_config import make_config
@@ -57,9 +59,13 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
         for it in iterations:
             for t, tr_ds, te_ds in clips:
                 base = make_config(preset, config_file)
-                cfg = make_config(preset, config_file, {
-                    "phases": {"iterations": it},
-                    "model": {"max_particles": n, "init_particles": min(n, base.model.init_particles)}})
+                over = {"phases": {"iterations": it},
+                        "model": {"max_particles": n, "init_particles": min(n, base.model.init_particles)}}
+                if time_budget > 0:
+                    over["train"] = {"time_budget_s": float(time_budget) / len(clips)}
+                if seed is not None:
+                    over.setdefault("train", {})["seed"] = int(seed)
+                cfg = make_config(preset, config_file, over)
                 run = out / (f"run_it{it}_n{n}" + ("" if t is None else f"_t{t:.4f}"))
                 for stale in ("recon.h5", "checkpoint.pt", "metrics.jsonl"):
                     (run / stale).unlink(missing_ok=True)
@@ -69,6 +75,7 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
                        "particles": m["particles"], "wall_s": m["wall_s"],
                        "train_psnr": ev["train"]["psnr_mean"],
                        "test_psnr": ev["test"]["psnr_mean"] if "test" in ev else None,
+                       "test_psnr_min_frame": ev["test"]["psnr_min_frame"] if "test" in ev else None,
                        "test_ssim": ev["test"]["ssim_mean"] if "test" in ev else None,
                        "density_std": ev["density"]["std_mean"]}
                 if "particles_vs_gt" in ev:

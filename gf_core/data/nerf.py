@@ -4,7 +4,9 @@ transforms_{split}.json (top level, each key may be overridden per frame):
   camera_angle_x | fl_x [fl_y] ; cx, cy (default W/2, H/2) ; w, h (default: the image's size)
   fps (optional): time = frame_index / fps for frames without "time"
   frames: [{file_path, transform_matrix (camera-to-world, OpenGL), time (seconds), view_id?,
-            mask_path?}]
+            mask_path?, time_s?}]
+  time_s (D-NeRF exports that normalise ``time`` to [0, 1]): the frame's time in seconds; when
+  every frame carries one it is the frame's time, whatever ``time`` and ``time_unit`` say.
 View ids: a frame's ``view_id`` (or ``camera_id``); otherwise frames with the same
 transform_matrix share a view, numbered in order of first appearance.
 """
@@ -105,6 +107,10 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
     if not isinstance(frames, list) or not frames:
         raise InputError(json_path, "has no 'frames' list (or it is empty)")
     fps = _num(meta, "fps", json_path, "top level") or fps
+    with_s = sum(isinstance(fr, dict) and "time_s" in fr for fr in frames)
+    if 0 < with_s < len(frames):
+        raise InputError(json_path, f"{with_s} of its {len(frames)} frames carry 'time_s' (seconds): give it for "
+                                    "every frame or for none")
     records: list[FrameRecord] = []
     view_of_pose: dict[bytes, int] = {}
     for k, fr in enumerate(frames):
@@ -139,7 +145,7 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
                                       name=str(fr.get("camera_name", "")))
         except InputError as e:
             raise InputError(json_path, f"{where}: {e.problem}") from None
-        t = _num(fr, "time", json_path, where)
+        t = _num(fr, "time_s" if with_s else "time", json_path, where)
         if t is None:
             fidx = _num(fr, "frame", json_path, where)
             if fidx is not None and fps:
@@ -161,6 +167,8 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
         mask = fr.get("mask_path")
         mask = resolve_image(root, mask, json_path, "mask") if mask else None
         records.append(FrameRecord(camera=cam, time=t, view_id=view, file=img, mask_file=mask))
+    if with_s:  # seconds already: no rescaling of a normalised "time"
+        meta = {**meta, "time_unit": "seconds", "time_source": "time_s (seconds per frame)"}
     return records, meta
 
 
@@ -190,7 +198,7 @@ TIME_UNITS = ("seconds", "normalized")
 
 def dataset_meta(meta: dict, json_path: Path) -> dict:
     """The documented top-level keys a reconstruction uses: ``scene_box`` [[x0,y0,z0],[x1,y1,z1]]
-    (metres), ``time_unit`` ("seconds", default, or "normalized": D-NeRF's [0, 1] clip time),
+    (metres), ``floor`` (the floor's height alone, metres), ``time_unit`` ("seconds", default, or "normalized": D-NeRF's [0, 1] clip time),
     ``fps`` and ``duration`` (seconds of the clip, for normalised time)."""
     out = {}
     if "scene_box" in meta:
@@ -203,12 +211,19 @@ def dataset_meta(meta: dict, json_path: Path) -> dict:
             raise InputError(json_path, f"'scene_box' must be [[x0, y0, z0], [x1, y1, z1]] with max > min, "
                                         f"got {box.tolist()}")
         out["scene_box"] = a.tolist()
+    if "floor" in meta:
+        z = _num(meta, "floor", json_path, "top level")
+        if z is None:
+            raise InputError(json_path, f"'floor' must be a finite number (the floor's height, metres), got {meta['floor']!r}")
+        out["floor"] = z
     unit = meta.get("time_unit", "seconds")
     if unit == "normalised":
         unit = "normalized"
     if unit not in TIME_UNITS:
         raise InputError(json_path, f"'time_unit' must be one of {', '.join(TIME_UNITS)}, got {unit!r}")
     out["time_unit"] = unit
+    if "time_source" in meta:
+        out["time_source"] = str(meta["time_source"])
     for k in ("fps", "duration"):
         v = _num(meta, k, json_path, "top level")
         if v is not None:

@@ -9,6 +9,7 @@ runs at 2k or 100k particles. particle radius = spacing / 2.
 | water_cube       | 0.8 x 0.8 x 0.8            | 0.3 m cube, bottom at z = 0.3             | water    |
 | water_sphere     | 0.8 x 0.8 x 0.8            | sphere r = 0.18 m at z = 0.45             | water    |
 | honey_cone       | 0.8 x 0.8 x 0.8            | cone apex down: z 0.25..0.55, r 0.2 top   | honey    |
+| water_splash     | 0.6 x 0.6 x 0.7            | sphere r = 0.16 m at z = 0.5, 1.5 m/s down | water    |
 | dam_break        | 1.0 x 0.1 x 0.6            | column a = 0.2 m wide, 2a high at x = 0   | water    |
 | hydrostatic_tank | 0.2 x 0.2 x 0.4            | water at rest up to H = 0.2 m             | water    |
 
@@ -89,6 +90,10 @@ def presets() -> dict[str, Scene]:
                               4 / 3 * math.pi * 0.18 ** 3, notes="NeuroFluid-like WaterSphere"),
         "honey_cone": Scene("honey_cone", cube, "honey", _cone((0.0, 0.0, 0.25), 0.3, 0.2),
                             math.pi * 0.2 ** 2 * 0.3 / 3, notes="NeuroFluid-like HoneyCone"),
+        "water_splash": Scene("water_splash", Domain((-0.3, -0.3, 0.0), (0.3, 0.3, 0.7)), "water",
+                              _sphere((0.0, 0.0, 0.5), 0.16), 4 / 3 * math.pi * 0.16 ** 3, velocity=(0.0, 0.0, -1.5),
+                              notes="a violent splash: a sphere thrown down into a closed tank (about 3 m/s at the "
+                                    "impact), sheets up the walls and spray"),
         "dam_break": Scene("dam_break", Domain((0.0, 0.0, 0.0), (1.0, 0.1, 0.6)), "water",
                            _box((0.0, 0.0, 0.0), (0.2, 0.1, 0.4)), 0.2 * 0.1 * 0.4,
                            notes="Martin & Moyce 1952 column, a = 0.2 m, height 2a"),
