@@ -33,6 +33,9 @@ OUTPUTS = {"dp": 3, "ds": 3, "dr": 4}  # position, log-scale, quaternion changes
 # how the residuals R are interpolated between their knots: "hermite" (C1: positions and velocities
 # continuous across the training frames) or "linear" (recon.h5 files that do not name one)
 RESIDUAL_INTERPOLATIONS = ("hermite", "linear")
+# between the knots, Phi itself: "decoder" (evaluated at tau, Eq. 4; files that do not name one) or
+# "knots" (evaluated at the knots and joined by the residuals' Hermite segments)
+TIME_INTERPOLATIONS = ("decoder", "knots")
 
 
 def hermite_coefficients(knots: np.ndarray, tau: float):
@@ -173,6 +176,8 @@ class NumpyDecoder:
         self.residuals = None if getattr(data, "residuals", None) is None else \
             np.ascontiguousarray(data.residuals, np.float32)
         self.interpolation = residual_interpolation(enc)
+        self.time_interpolation = time_interpolation(enc)
+        self._at_knot = {}  # time_interpolation "knots": (tau - tau0) Phi at each knot, computed once
         self.knots = None if self.residuals is None else np.asarray(data.residual_knots, np.float64)
         if self.residuals is not None:
             self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
@@ -212,6 +217,24 @@ class NumpyDecoder:
         (N, channels), the change of the degree-0 SH coefficient; with opacity residuals 'do' (N, 1),
         the change of the logit opacity."""
         tau = float(tau)
+        if self.time_interpolation == "knots" and self.residuals is not None and \
+                (with_velocity or np.abs(self.knots - tau).min() > 1e-9):
+            idx, wv, wd = hermite_coefficients(self.knots, tau)
+            rows = [self._knot_output(int(j)) for j in idx]
+            out = sum(np.float32(w) * r for w, r in zip(wv, rows))
+            vel = sum(np.float32(w) * r[:, :3] for w, r in zip(wd, rows)) if with_velocity else None
+        else:
+            out, vel = self._scaled_mlp(tau, with_velocity)
+        return self._with_residuals(tau, out, vel, with_velocity)
+
+    def _knot_output(self, j: int) -> np.ndarray:
+        if j not in self._at_knot:
+            self._at_knot[j] = self._scaled_mlp(float(self.knots[j]), False)[0]
+        return self._at_knot[j]
+
+    def _scaled_mlp(self, tau: float, with_velocity: bool):
+        """(tau - tau0) Phi (N, outputs) and, with ``with_velocity``, its position part's derivative
+        along tau (N, 3), else None."""
         gamma, dgamma = encode_time(tau, self.n_freqs, self.include_input)
         row = (self.w_gamma @ gamma.astype(np.float32) + self.b0).astype(np.float32)
         drow = (self.w_gamma @ dgamma.astype(np.float32)).astype(np.float32)
@@ -244,6 +267,9 @@ class NumpyDecoder:
                     h += b
             out[s:s + m] = h
         out *= scale
+        return out, vel
+
+    def _with_residuals(self, tau: float, out: np.ndarray, vel, with_velocity: bool) -> dict:
         if self.residuals is not None:
             r, slope = self._residual(tau)
             out += r - self._residual(self.canonical_time)[0]
@@ -266,6 +292,14 @@ def residual_interpolation(encoding: dict) -> str:
     v = encoding.get("residual_interpolation", "linear")
     if v not in RESIDUAL_INTERPOLATIONS:
         raise InputError("recon.h5 decoder", f"residual_interpolation {v!r} is not one of {', '.join(RESIDUAL_INTERPOLATIONS)}")
+    return v
+
+
+def time_interpolation(encoding: dict) -> str:
+    """Phi's interpolation between the knots named in a decoder's encoding; "decoder" when absent."""
+    v = encoding.get("time_interpolation", "decoder")
+    if v not in TIME_INTERPOLATIONS:
+        raise InputError("recon.h5 decoder", f"time_interpolation {v!r} is not one of {', '.join(TIME_INTERPOLATIONS)}")
     return v
 
 
@@ -345,9 +379,11 @@ class ParticleAnimation:
             pos, ls, q = self.means, self.log_scales, self.quats
         else:
             pos, ls, q = self.means + d["dp"], self.log_scales + d["ds"], self.quats + d["dr"]
+        held = None
         if self.bounds is not None:
             lo, hi, smin, smax = self.bounds
-            pos = np.minimum(np.maximum(pos, lo), hi)
+            raw, pos = pos, np.minimum(np.maximum(pos, lo), hi)
+            held = pos != raw  # coordinates held at a wall: their velocity is 0 (the clamp's derivative)
             ls = np.clip(ls, smin, smax)
         sh, colors = self.sh, self.color
         if d is not None and "dc" in d:
@@ -363,8 +399,10 @@ class ParticleAnimation:
             if d is None or self.time.duration <= 0 or not inside:
                 out["velocities"] = np.zeros_like(self.means)
             else:
-                out["velocities"] = d["vp"] / np.float32(self.time.duration)
+                v = d["vp"] / np.float32(self.time.duration)
+                out["velocities"] = v if held is None else np.where(held, np.float32(0), v)
         return out
 
-__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "centre_box", "hermite_coefficients", "tangent_table", "residual_interpolation",
+__all__ = ["NumpyDecoder", "ParticleAnimation", "base_color", "centre_box", "hermite_coefficients", "tangent_table", "residual_interpolation", "time_interpolation",
+           "TIME_INTERPOLATIONS",
            "RESIDUAL_INTERPOLATIONS", "TimeMap", "encode_time", "OUTPUTS", "SH_C0"]

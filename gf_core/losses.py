@@ -172,6 +172,23 @@ def least_motion(positions: list, taus: list, spacing: float) -> torch.Tensor:
     return total
 
 
+def acceleration(dp_prev: torch.Tensor, dp: torch.Tensor, dp_next: torch.Tensor, h0: float, h1: float,
+                 frame: float, spacing: float) -> torch.Tensor:
+    """Not in the paper: mean_i |a_i|^2 of each particle's acceleration at a training frame, from
+    its positions at that frame and its two neighbours (the non-uniform second difference, taus
+    h0 before and h1 after), in particle spacings per frame^2 (``frame``: the mean knot step in
+    tau):
+
+        a_i = 2 [h0 (p_i(+) - p_i) - h1 (p_i - p_i(-))] / (h0 h1 (h0 + h1)) * frame^2 / spacing
+
+    The images cannot tell which particle is which, so per-frame corrections may let particles
+    jump about between frames without changing an image; this prefers motion whose velocity
+    changes smoothly, as a fluid's does. ``dp_*`` (N, 3): positions, or anything that differs from
+    them by the same offset at the three times (the canonical positions cancel)."""
+    a = 2.0 * (h0 * (dp_next - dp) - h1 * (dp - dp_prev)) / (h0 * h1 * (h0 + h1)) * (frame ** 2 / spacing)
+    return (a * a).sum(-1).mean()
+
+
 def _to_camera(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
     """(I, N, 3) world points in each of I cameras (I, 4, 4): (I, N, 3) camera coordinates."""
     return means @ viewmat[:, :3, :3].transpose(1, 2) + viewmat[:, None, :3, 3]
@@ -274,6 +291,6 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-__all__ = ["TABLE1_WEIGHTS", "l1", "blur", "ssim", "d_ssim", "poly6", "sph_density", "sph_density_knn", "density_uniformity",
+__all__ = ["acceleration", "TABLE1_WEIGHTS", "l1", "blur", "ssim", "d_ssim", "poly6", "sph_density", "sph_density_knn", "density_uniformity",
            "volume_consistency", "anisotropy", "mse_to_mean", "opacity_consistency", "color_consistency",
            "silhouette_distance", "least_motion", "hull_distance", "silhouette_coverage", "floor_coverage", "unsupported", "settling", "psnr"]

@@ -172,8 +172,8 @@ class FluidModel(nn.Module):
             means, log_scales = self._bounded(r["means"], r["log_scales"])
             p = {"means": means, "scales": torch.exp(log_scales), "quats": r["quats"],
                  "opacities": op_k, "sh": sh_k}
-            if with_velocity:
-                p["velocities"] = torch.zeros_like(means) if vel is None else vel
+            if with_velocity:  # the clamp's derivative: a coordinate held at a wall does not move
+                p["velocities"] = torch.zeros_like(means) if vel is None else torch.where(means == r["means"], vel, 0.0)
             out.append(p)
         return out
 

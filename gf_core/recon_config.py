@@ -47,6 +47,7 @@ class LossConfig:
     floor: float = 0.0             # fluid on the scene box's floor where every view sees fluid (not in the paper), losses.py
     settle: float = 0.0            # unsupported fluid over a wet floor settles (not in the paper), losses.settling
     motion: float = 0.0            # least motion between the step's times (not in the paper), see losses.py
+    smooth: float = 0.0            # particle acceleration at the drawn frames, through the residuals (losses.acceleration)
     background: str = "random"     # random | black | white | dataset (see reconstruct.py)
     blur_start: float = 0.02       # phase 2 starts comparing images blurred by this x image width (sigma)
 
@@ -163,7 +164,7 @@ class ReconConfig:
             raise InputError(where, f"model.wall_inset must be in [0, 2] particle spacings, got {m.wall_inset}")
         if lo.background not in ("random", "black", "white", "dataset"):
             raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
-        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor", "settle", "motion"):
+        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor", "settle", "motion", "smooth"):
             v = getattr(lo, k)
             if not (isinstance(v, (int, float)) and v >= 0):
                 raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")

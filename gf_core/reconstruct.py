@@ -94,7 +94,8 @@ from .model import Bounds, FluidModel
 from .neighbors import knn
 from .recon_config import ReconConfig, from_dict
 from .render import render
-from .scene_init import carve, in_hull, mean_foreground_color, random_in_box, scene_box, spacing_for
+from .scene_init import (carve, floor_known, hull_box, in_hull, mean_foreground_color, random_in_box, scene_box,
+                         spacing_for)
 from .strategy import DensifyPrune, ParticleOptimizer
 from .temporal import Decoder, TimeMap
 
@@ -185,7 +186,8 @@ def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
     """The weights of Eq. 11 in ``phase`` (1-3) at ramp progress ``ramp`` in [0, 1]."""
     lo, ph = cfg.loss, cfg.phases
     w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color, "hull": lo.hull,
-         "floor": lo.floor, "settle": lo.settle, "motion": lo.motion if phase > 1 else 0.0}
+         "floor": lo.floor, "settle": lo.settle, "motion": lo.motion if phase > 1 else 0.0,
+         "smooth": lo.smooth if phase >= ph.residuals_from else 0.0}
     r = ph.phase1_reg
     if phase == 1:
         w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
@@ -276,12 +278,24 @@ class Trainer:
         cfg, mc = self.cfg, self.cfg.model
         canon = self.train.at_time(self.t_canon)
         lo, hi, src = scene_box(mc.scene_box, self._train_ds, [self.train.cameras[i] for i in canon], mc.floor)
+        if src.startswith("cameras") and all(a is not None for a in self.train.alphas):
+            # no container given: where the images allow the fluid to have been, over the whole clip
+            frames = [[(self.train.cameras[i], self.train.alphas[i]) for i in self.train.at_time(float(t))]
+                      for t in self.train.unique_times]
+            box = hull_box(lo, hi, frames, threshold=mc.carve_threshold, seed=cfg.train.seed)
+            if box is not None:
+                floor = lo[2]
+                lo, hi = box
+                if floor_known(src):  # a floor given alone stays the floor
+                    lo[2] = floor
+                src += ", cut to every frame's visual hull"
         self.box_source = src
-        if src == "cameras":
+        if not floor_known(src):
             self.log("warning: no scene box and no floor are known (none given, none in the dataset), so the box is "
-                     "guessed from the cameras: nothing keeps particles inside the real container or above its "
-                     "floor, and the floor and settle terms are off. Give the container with --scene-box "
-                     "X0,Y0,Z0,X1,Y1,Z1 or at least its floor with --floor Z (metres, z up).")
+                     "the cameras' view cut to where the images show fluid in some frame: particles can still sit "
+                     "below the real floor or beyond the real walls where no view can tell, and the floor and settle "
+                     "terms are off. Give the container with --scene-box=X0,Y0,Z0,X1,Y1,Z1 or at least its floor "
+                     "with --floor Z (metres, z up).")
         if cfg.loss.settle > 0 and not self.static and not cfg.decoder.residuals:
             self.log("loss.settle is off: it acts through the decoder residuals (decoder.residuals = false)")
         n0 = min(mc.init_particles, mc.max_particles)
@@ -584,6 +598,20 @@ class Trainer:
             gate = over & held[1]
         return L.settling(pos, gate, float(lo[2]), self.spacing)
 
+    def _smooth_term(self, t: float):
+        """losses.acceleration at training time ``t`` from the decoded positions there and at the
+        neighbouring training frames (None at the clip's first and last frame). The canonical
+        positions cancel in the second difference; with a frozen decoder the MLP's part comes from
+        its cache, so only the residuals get gradients."""
+        times = self.train.unique_times
+        j = int(np.argmin(np.abs(times - t)))
+        if j == 0 or j == len(times) - 1:
+            return None
+        taus = [self.time_map.tau(float(times[k])) for k in (j - 1, j, j + 1)]
+        dp = self.model.decoder.forward_many(taus)["dp"]
+        frame = 1.0 / (len(times) - 1)
+        return L.acceleration(dp[0], dp[1], dp[2], taus[1] - taus[0], taus[2] - taus[1], frame, self.spacing)
+
     def _cam_tensors(self, i: int):
         if i not in self._camt:
             self._camt[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
@@ -650,7 +678,7 @@ class Trainer:
                     reg.setdefault("hull", 0.0)  # computed after the loop, for all images at once
             terms_t = {}
             dec = self.model.decoder
-            settle = w["settle"] > 0 and use_dec and self.box_source != "cameras" and dec.knots is not None \
+            settle = w["settle"] > 0 and use_dec and floor_known(self.box_source) and dec.knots is not None \
                 and self.phase >= self.cfg.phases.residuals_from
             if w["density"] > 0 or settle:
                 nbr = self._neighbors(float(t) if use_dec else "canonical", p["means"])
@@ -658,10 +686,14 @@ class Trainer:
                 terms_t["settle"] = w["settle"] * self._settle_term(float(t), p["means"], nbr)
             if w["density"] > 0:
                 terms_t["density"] = w["density"] * L.density_uniformity(L.sph_density_knn(p["means"], nbr, self.h))
-            if w["floor"] > 0 and self.box_source != "cameras":
+            if w["floor"] > 0 and floor_known(self.box_source):
                 fs = self._floor_samples(float(t))
                 if fs is not None:
                     terms_t["floor"] = w["floor"] * L.floor_coverage(p["means"], fs, self.spacing)
+            if w["smooth"] > 0 and use_dec and dec.knots is not None:
+                sm = self._smooth_term(float(t))
+                if sm is not None:
+                    terms_t["smooth"] = w["smooth"] * sm
             if w["volume"] > 0:
                 terms_t["volume"] = w["volume"] * L.volume_consistency(p["scales"])
             if w["aniso"] > 0:

@@ -50,7 +50,8 @@ import torch
 from torch import nn
 
 # TimeMap (seconds <-> tau) and the output layout are shared with the numpy twin, which needs no torch
-from .decoder_np import OUTPUTS, RESIDUAL_INTERPOLATIONS, TimeMap, residual_interpolation, tangent_table
+from .decoder_np import (OUTPUTS, RESIDUAL_INTERPOLATIONS, TIME_INTERPOLATIONS, TimeMap, residual_interpolation,
+                         tangent_table, time_interpolation)
 from .errors import InputError
 
 RESIDUAL_PREFIX = "residual_"  # parameter names: residual_dp, residual_ds, residual_dr (, residual_dc, residual_do)
@@ -70,6 +71,8 @@ class DecoderConfig:
     color_residuals: bool = False  # per-particle base-colour corrections at the same knots (not in the paper)
     opacity_residuals: bool = False  # per-particle logit-opacity corrections at the same knots (not in the paper)
     residual_interpolation: str = "hermite"  # between the knots: "hermite" (C1) or "linear"
+    time_interpolation: str = "decoder"  # between the knots: "decoder" (Phi at tau, Eq. 4) or "knots" (Phi at the
+                                         # knots joined by the residuals' Hermite segments; needs residuals)
 
     def validate(self) -> "DecoderConfig":
         for k in ("feature_dim", "hidden_layers", "hidden_width"):
@@ -85,6 +88,12 @@ class DecoderConfig:
         if self.residual_interpolation not in RESIDUAL_INTERPOLATIONS:
             raise InputError("decoder config", f"residual_interpolation must be one of "
                                                f"{', '.join(RESIDUAL_INTERPOLATIONS)}, got {self.residual_interpolation!r}")
+        if self.time_interpolation not in TIME_INTERPOLATIONS:
+            raise InputError("decoder config", f"time_interpolation must be one of {', '.join(TIME_INTERPOLATIONS)}, "
+                                               f"got {self.time_interpolation!r}")
+        if self.time_interpolation == "knots" and (not self.residuals or self.residual_interpolation != "hermite"):
+            raise InputError("decoder config", "time_interpolation = 'knots' needs residuals = true and "
+                                               "residual_interpolation = 'hermite' (it joins the same knots the same way)")
         if int(self.n_freqs) == 0 and not self.include_input:
             raise InputError("decoder config", "the time encoding is empty (n_freqs 0 and no include_input)")
         return self
@@ -157,6 +166,7 @@ class Decoder(nn.Module):
             if kn.ndim != 1 or kn.numel() < 2 or not bool((kn[1:] > kn[:-1]).all()):
                 raise InputError("decoder config", "residuals need at least 2 increasing knots (the frames' tau)")
             self.knots = kn.to(dtype=dtype, device=device)
+            self._knots_np = kn.numpy().copy()
             # the Hermite tangents' weights per segment, fixed with the knots (residual_interpolation)
             self.register_buffer("tangents", torch.as_tensor(tangent_table(kn.numpy()), dtype=dtype, device=device),
                                  persistent=False)
@@ -252,7 +262,12 @@ class Decoder(nn.Module):
         else:  # a fill on the device, not a host-to-device copy (which would wait for the GPU)
             tau_t = torch.stack([t.to(feats.dtype).reshape(()) if isinstance(t, torch.Tensor) else
                                  torch.full((), float(t), dtype=feats.dtype, device=feats.device) for t in taus])
-        if keys is not None:
+        between = self.cfg.time_interpolation == "knots" and self.knots is not None and \
+            (with_velocity or isinstance(taus, torch.Tensor) or
+             any(not isinstance(t, (int, float)) or np.abs(self._knots_np - t).min() > 1e-9 for t in taus))
+        if between:  # Phi at the knots, joined like the residuals (at a knot itself this is Phi there)
+            mlp, vmlp = self._mlp_between_knots(tau_t, feats, with_velocity, own=features is None)
+        elif keys is not None:
             mlp = self._frozen_mlp(keys, tau_t)
         else:
             mlp, vmlp = self._mlp(tau_t, feats, with_velocity)
@@ -273,6 +288,22 @@ class Decoder(nn.Module):
             r, _ = self._residual_at(tau_t, name)
             out[name] = r - self._residual_at(tau0, name)[0]
         return out
+
+    def _mlp_between_knots(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool, own: bool):
+        """(tau - tau0) Phi (T, N, outputs) for ``time_interpolation = "knots"``: Phi's output at the
+        four knots around each time, weighted like the residuals (``hermite_coefficients``), and the
+        position part's derivative along tau (T, N, 3) with ``with_velocity``, else None."""
+        idx, wv, wd = hermite_coefficients(self.knots, self.tangents, tau_t)
+        uniq = torch.unique(idx)
+        kt = self.knots[uniq]
+        if self._frozen is not None and own:
+            mk = self._frozen_mlp([float(x) for x in kt.tolist()], kt)
+        else:
+            mk, _ = self._mlp(kt, feats, False)
+        g = mk[torch.searchsorted(uniq, idx)]  # (T, 4, N, outputs)
+        mlp = torch.einsum("tf,tfnk->tnk", wv.to(g.dtype), g)
+        vp = torch.einsum("tf,tfnk->tnk", wd.to(g.dtype), g[..., :3]) if with_velocity else None
+        return mlp, vp
 
     def _mlp(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool):
         """(tau - tau0) Phi(theta, gamma(tau)) (T, N, outputs) and, with ``with_velocity``, the
@@ -355,7 +386,8 @@ class Decoder(nn.Module):
         return DecoderData(features=self.features.detach().cpu().numpy(), layers=layers,
                            encoding={"n_freqs": c.n_freqs, "include_input": c.include_input,
                                      "canonical_time": c.canonical_time, "time_scaling": "tau - tau0",
-                                     "residual_interpolation": c.residual_interpolation},
+                                     "residual_interpolation": c.residual_interpolation,
+                                     "time_interpolation": c.time_interpolation},
                            outputs=dict(OUTPUTS), activation="relu",
                            residuals=None if not res else
                            torch.cat([(v * self.knot_free[None, :, None]).detach() for v in res.values()], -1).cpu().numpy(),
@@ -380,7 +412,8 @@ class Decoder(nn.Module):
                             include_input=bool(enc.get("include_input", True)),
                             canonical_time=float(enc.get("canonical_time", 0.0)), residuals=res is not None,
                             color_residuals=col is not None, opacity_residuals=op is not None,
-                            residual_interpolation=residual_interpolation(enc))
+                            residual_interpolation=residual_interpolation(enc),
+                            time_interpolation=time_interpolation(enc))
         if d.layers[0][0].shape[1] != feat_dim + cfg.encoding_dim:
             raise InputError("recon.h5 decoder", f"first layer takes {d.layers[0][0].shape[1]} inputs; "
                                                  f"features ({feat_dim}) + encoding ({cfg.encoding_dim}) differ")

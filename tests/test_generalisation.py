@@ -76,6 +76,51 @@ def test_left_and_right_velocities_agree_at_every_training_frame():
             assert max(jumps) > 0.1 * max(scale)
 
 
+def test_decoder_joined_at_the_knots_equals_it_there_and_is_smooth_between():
+    """time_interpolation = "knots": at a training frame the decoder's output is exactly Phi's there
+    (training is unchanged); between frames Phi's knot outputs are joined like the residuals, so
+    the velocity is continuous across every frame, matches finite differences, and the numpy
+    decoder agrees; a coordinate held at a wall has velocity 0 in both."""
+    knots = np.linspace(0, 1, 9)
+    dec = residual_decoder(knots)
+    dec.cfg.time_interpolation = "knots"
+    plain = residual_decoder(knots)  # the same weights, Phi evaluated at tau
+    plain.load_state_dict(dec.state_dict())
+    nd = NumpyDecoder(dec.to_data())
+    assert nd.time_interpolation == "knots"
+    with torch.no_grad():
+        for k in knots:
+            assert torch.allclose(dec.forward(float(k))["dp"], plain.forward(float(k))["dp"], atol=1e-6)
+        for tau in (0.07, 0.5 + 1e-3, 0.93):
+            a, b = dec.forward(tau, with_velocity=True), nd(tau, with_velocity=True)
+            assert np.abs(a["dp"].numpy() - b["dp"]).max() < 1e-5 and np.abs(a["vp"].numpy() - b["vp"]).max() < 1e-4
+            h = 1e-4
+            fd = (dec.forward(tau + h)["dp"] - dec.forward(tau - h)["dp"]) / (2 * h)
+            assert torch.allclose(fd, a["vp"], atol=2e-2 * float(a["vp"].abs().max()))
+        assert not torch.allclose(dec.forward(0.07)["dp"], plain.forward(0.07)["dp"], atol=1e-6)  # it does differ between
+        for k in knots[1:-1]:
+            left, right = dec.forward(k - 1e-5, with_velocity=True)["vp"], dec.forward(k + 1e-5, with_velocity=True)["vp"]
+            assert float((left - right).abs().max()) < 1e-2 * float(left.abs().max())
+    with pytest.raises(InputError, match="time_interpolation = 'knots' needs residuals"):
+        DecoderConfig(time_interpolation="knots").validate()
+    # a coordinate held at a wall does not move
+    from gf_core.decoder_np import ParticleAnimation
+    from gf_core.model import Bounds, FluidModel
+    from gf_core.temporal import TimeMap
+
+    n = dec.num_particles
+    model = FluidModel(torch.zeros(n, 3), torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                       torch.zeros(n), torch.full((n, 1, 3), 0.5), bounds=Bounds.for_box([-0.02] * 3, [0.02] * 3, 0.01, 0.0),
+                       time_map=TimeMap(0.0, 1.0), decoder=dec)
+    with torch.no_grad():
+        st = model.at(0.43, with_velocity=True)
+    held = (st["means"].abs() >= 0.02 - 1e-7)
+    assert held.any() and (~held).any()
+    assert float(st["velocities"][held].abs().max()) == 0.0 and float(st["velocities"][~held].abs().max()) > 0
+    np_st = ParticleAnimation(model.to_recon()).at(0.43, velocity=True)
+    assert np.allclose(np_st["velocities"], st["velocities"].numpy(), atol=1e-4)
+
+
 def test_hermite_residuals_are_exact_at_the_knots_and_for_free_fall():
     """At a knot the value is that knot's residual alone (a training step there trains the same
     value as before); a quadratic in time (free fall) is reproduced with its exact derivative."""
@@ -109,6 +154,36 @@ def test_old_files_without_an_interpolation_keep_linear_residuals(tmp_path):
         DecoderConfig(residual_interpolation="cubic").validate()
 
 
+def test_acceleration_term_is_the_second_difference_and_reaches_only_the_residuals(blob, tmp_path):
+    """losses.acceleration: 0 for motion at constant velocity, g in spacings per frame^2 for free
+    fall; in the trainer (loss.smooth) it reaches the neighbouring frames' residuals only."""
+    from gf_core import losses as L
+
+    x = torch.randn(50, 3)
+    v = torch.randn(50, 3)
+    h = 0.1
+    assert float(L.acceleration(x - v * h, x, x + v * h, h, h, h, 1.0)) == pytest.approx(0.0, abs=1e-10)
+    g = torch.tensor([0.0, 0.0, -9.81])
+    p = lambda t: x + v * t + 0.5 * g * t * t  # noqa: E731
+    # non-uniform steps still give the exact acceleration of a quadratic
+    a = L.acceleration(p(-0.05), p(0.0), p(0.12), 0.05, 0.12, 0.1, 0.02)
+    assert float(a) == pytest.approx((9.81 * 0.1 ** 2 / 0.02) ** 2, rel=1e-4)
+    cfg = small_config(phases={"iterations": 200, "residuals_from": 3}, loss={"smooth": 0.01})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "s", log=quiet)
+    tr.initialise()
+    tr.phase = 3
+    tr._set_lrs(0.5, 0.5)
+    with torch.no_grad():
+        tr.model.decoder.residual_dp.normal_(0, 0.01)
+    times = tr.train.unique_times
+    assert tr._smooth_term(float(times[0])) is None and tr._smooth_term(float(times[-1])) is None
+    val = tr._smooth_term(float(times[2]))
+    val.backward()
+    g = tr.model.decoder.residual_dp.grad.abs().sum((0, 2))
+    assert set(torch.nonzero(g).flatten().tolist()) <= {1, 2, 3} and float(g[2]) > 0
+    assert tr.model.decoder.features.grad is None  # the frozen decoder gets nothing
+
+
 # ---- the scene box and the floor a user has ------------------------------------------------------
 @pytest.mark.parametrize("argv, message", [
     (["--scene-box", "0,0,0,1,1"], "--scene-box: expected six finite numbers"),
@@ -138,18 +213,27 @@ def test_scene_box_and_floor_reach_the_trainer_and_recon_h5(blob, tmp_path):
     said = []
     tr = Trainer(small_config(), ds, out=tmp_path / "a", log=said.append)
     tr.initialise()
-    assert tr.box_source == "cameras"
+    assert tr.box_source == "cameras, cut to every frame's visual hull"
     assert any("--scene-box" in s and "--floor" in s and "floor and settle terms are off" in s for s in said)
+    # the hull's box holds every true particle of every frame (within a spacing) and is far smaller than the cameras'
+    from gf_core.scene_init import box_from_cameras
+
+    gt = ds.ground_truth()
+    lo, hi = np.asarray(tr.model.bounds.lo), np.asarray(tr.model.bounds.hi)
+    sp = 2 * gt.particle_radius
+    assert np.all(gt.positions.min((0, 1)) >= lo - sp) and np.all(gt.positions.max((0, 1)) <= hi + sp)
+    clo, chi = box_from_cameras(list(ds.cameras().values()))
+    assert np.prod(hi - lo) < 0.5 * np.prod(chi - clo)
     tr = Trainer(small_config(model={"floor": [-0.05]}), ds, out=tmp_path / "b", log=quiet)
     tr.initialise()
-    assert tr.box_source == "cameras, floor from config" and tr.model.bounds.lo[2] == pytest.approx(-0.05)
+    assert tr.box_source.startswith("cameras, floor from config") and tr.model.bounds.lo[2] == pytest.approx(-0.05)
     # a floor in the dataset's own file
     p = root / "transforms_train.json"
     meta = json.loads(p.read_text())
     p.write_text(json.dumps({**meta, "floor": -0.04}))
     tr = Trainer(small_config(), load_dataset(root), out=tmp_path / "c", log=quiet)
     tr.initialise()
-    assert tr.box_source == "cameras, floor from dataset" and tr.model.bounds.lo[2] == pytest.approx(-0.04)
+    assert tr.box_source.startswith("cameras, floor from dataset") and tr.model.bounds.lo[2] == pytest.approx(-0.04)
     p.write_text(json.dumps({**meta, "floor": "ground"}))
     with pytest.raises(InputError, match="'floor' must be a finite number"):
         load_dataset(root)

@@ -761,6 +761,7 @@ def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
     monkeypatch.setattr(L, "least_motion", lambda *a: called.__setitem__("motion", 1))  # weight 0 by default
     monkeypatch.setattr(L, "floor_coverage", lambda *a: called.__setitem__("floor", 1))
     monkeypatch.setattr(L, "unsupported", lambda *a: called.__setitem__("settle", 1))
+    monkeypatch.setattr(L, "acceleration", lambda *a: called.__setitem__("smooth", 1))  # weight 0 by default
     cfg = small_config(phases={"iterations": 80}, loss={"density": 0.0, "volume": 0.0, "floor": 0.0, "settle": 0.0})
     reconstruct(load_dataset(blob), tmp_path / "z", cfg, log=quiet)
     assert called == {"knn": 0, "vol": 0}

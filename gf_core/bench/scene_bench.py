@@ -92,11 +92,12 @@ def load_suite(path: Path | None = None, *, quick: bool = False, only: list[str]
     return {"scenes": scenes, "targets": targets, "path": str(path), "quick": quick}
 
 
-def _gf(args: list, log, what: str) -> None:
-    """One ``gf-cli`` command as its own process; its output is kept in the step's log file."""
+def _gf(args: list, log, what: str, log_file: Path) -> None:
+    """One ``gf-cli`` command as its own process; its output goes to ``log_file``."""
     cmd = [sys.executable, "-m", "gf_cli.main"] + [str(a) for a in args]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
+    Path(log_file).write_text(f"$ gf-cli {' '.join(map(str, args))}\n{proc.stdout}{proc.stderr}")
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
         raise InputError(what, f"`gf-cli {' '.join(map(str, args[:2]))} ...` failed ({proc.returncode}): "
@@ -111,7 +112,8 @@ def make_dataset(name: str, spec: dict, work: Path, log=print) -> Path:
     sim = d / "sim.h5"
     if not sim.exists():
         _gf(["simulate", spec["scene"], "--solver", spec["solver"], "--particles", spec["particles"],
-             "--fps", spec["fps"], "--seconds", spec["seconds"], "--out", sim, "--quiet"], log, f"{name}: simulate")
+             "--fps", spec["fps"], "--seconds", spec["seconds"], "--out", sim, "--quiet"], log, f"{name}: simulate",
+            d / "simulate.log")
     ds = d / "dataset"
     if not (ds / "transforms_train.json").exists():
         args = ["render-dataset", sim, "--out", ds, "--views", spec["views"], "--test-views", spec["test_views"],
@@ -124,7 +126,7 @@ def make_dataset(name: str, spec: dict, work: Path, log=print) -> Path:
             args.append("--denoise")
         if not spec["scene_box"]:
             args.append("--no-scene-box")
-        _gf(args, log, f"{name}: render-dataset")
+        _gf(args, log, f"{name}: render-dataset", d / "render-dataset.log")
     return ds
 
 
@@ -135,9 +137,10 @@ def _complete(run: Path) -> bool:
 def reconstruct_and_evaluate(name: str, spec: dict, ds: Path, work: Path, seed: int, log=print) -> dict:
     run = work / name / f"recon_seed{seed}"
     if not _complete(run):
+        run.mkdir(parents=True, exist_ok=True)
         _gf(["reconstruct", ds, "--out", run, "--preset", spec["preset"], "--time-budget", spec["time_budget"],
-             "--seed", seed, "--force", "--quiet"], log, f"{name}: reconstruct (seed {seed})")
-        _gf(["evaluate", run, "--dataset", ds], log, f"{name}: evaluate (seed {seed})")
+             "--seed", seed, "--force", "--quiet"], log, f"{name}: reconstruct (seed {seed})", run / "reconstruct.log")
+        _gf(["evaluate", run, "--dataset", ds], log, f"{name}: evaluate (seed {seed})", run / "evaluate.log")
     return json.loads((run / "eval.json").read_text())
 
 
@@ -149,7 +152,8 @@ def per_frame_fit(name: str, spec: dict, ds: Path, work: Path, log=print) -> dic
 
         n = make_config(spec["preset"]).model.max_particles
         _gf(["bench", "reconstruct", ds, "--per-frame", "--preset", spec["preset"], "--iterations", 1_000_000,
-             "--particles", n, "--time-budget", spec["time_budget"], "--out", out], log, f"{name}: per-frame 3DGS fit")
+             "--particles", n, "--time-budget", spec["time_budget"], "--out", out], log, f"{name}: per-frame 3DGS fit",
+            work / name / "per-frame.log")
     return json.loads(res.read_text())
 
 
