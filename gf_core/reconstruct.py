@@ -94,8 +94,7 @@ from .model import Bounds, FluidModel
 from .neighbors import knn
 from .recon_config import ReconConfig, from_dict
 from .render import render
-from .scene_init import (carve, floor_known, hull_box, in_hull, mean_foreground_color, random_in_box, scene_box,
-                         spacing_for)
+from .scene_init import carve, floor_known, in_hull, mean_foreground_color, random_in_box, scene_box, spacing_for
 from .strategy import DensifyPrune, ParticleOptimizer
 from .temporal import Decoder, TimeMap
 
@@ -278,24 +277,13 @@ class Trainer:
         cfg, mc = self.cfg, self.cfg.model
         canon = self.train.at_time(self.t_canon)
         lo, hi, src = scene_box(mc.scene_box, self._train_ds, [self.train.cameras[i] for i in canon], mc.floor)
-        if src.startswith("cameras") and all(a is not None for a in self.train.alphas):
-            # no container given: where the images allow the fluid to have been, over the whole clip
-            frames = [[(self.train.cameras[i], self.train.alphas[i]) for i in self.train.at_time(float(t))]
-                      for t in self.train.unique_times]
-            box = hull_box(lo, hi, frames, threshold=mc.carve_threshold, seed=cfg.train.seed)
-            if box is not None:
-                floor = lo[2]
-                lo, hi = box
-                if floor_known(src):  # a floor given alone stays the floor
-                    lo[2] = floor
-                src += ", cut to every frame's visual hull"
         self.box_source = src
         if not floor_known(src):
             self.log("warning: no scene box and no floor are known (none given, none in the dataset), so the box is "
-                     "the cameras' view cut to where the images show fluid in some frame: particles can still sit "
-                     "below the real floor or beyond the real walls where no view can tell, and the floor and settle "
-                     "terms are off. Give the container with --scene-box=X0,Y0,Z0,X1,Y1,Z1 or at least its floor "
-                     "with --floor Z (metres, z up).")
+                     "guessed from the cameras: nothing keeps particles inside the real container or above its "
+                     "floor (where no view can tell, they sink below it), and the floor and settle terms are off. "
+                     "Give the container with --scene-box=X0,Y0,Z0,X1,Y1,Z1 or at least its floor with --floor Z "
+                     "(metres, z up).")
         if cfg.loss.settle > 0 and not self.static and not cfg.decoder.residuals:
             self.log("loss.settle is off: it acts through the decoder residuals (decoder.residuals = false)")
         n0 = min(mc.init_particles, mc.max_particles)

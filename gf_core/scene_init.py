@@ -5,9 +5,7 @@ dataset's ``scene_box`` (written by ``gf-cli render-dataset``: the simulation's 
 derived from the cameras: the point nearest to every optical axis (least squares) with a
 half-size of the smallest half-width that any camera sees at that distance. A floor height alone
 (``model.floor``, ``--floor``, or a dataset's ``floor``: a tank or a table whose walls are not
-known) replaces the box's lowest z; the box's own floor is known only when the box is given. A box
-from the cameras is cut to the bounding box of every frame's visual hull (``hull_box``), where the
-images allow the fluid to have been.
+known) replaces the box's lowest z; the box's own floor is known only when the box is given.
 
 Carving (space carving, Kutulakos & Seitz 2000): candidate points drawn uniformly in the box are
 kept when they project onto alpha >= threshold in every view that sees them (and at least one
@@ -70,42 +68,6 @@ def floor_known(source: str) -> bool:
     """Whether a scene box of ``source`` (``scene_box``) has a real floor: a given box, or a floor
     given alone; not a box guessed from the cameras."""
     return source in ("config", "dataset") or "floor from" in source
-
-
-def hull_box(lo, hi, frames: list, *, threshold: float = 0.5, candidates: int = 400_000, margin: float = 0.0,
-             seed: int = 0):
-    """The bounding box of the visual hull of every frame: ``frames`` is a list (one per time) of
-    [(camera, alpha (H, W))]. Candidate points drawn once uniformly in ``lo``..``hi`` are kept where
-    some frame's hull holds them (``in_hull``); their box, grown by ``margin`` metres (and the
-    candidates' own spacing) and cut to ``lo``..``hi``, is where the fluid can have been. None when
-    no frame's hull holds any candidate. Each camera's projection is computed once (cameras shared
-    by several frames, as a fixed rig's are)."""
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    P = lo + (hi - lo) * np.random.default_rng(seed).random((int(candidates), 3))
-    proj: dict = {}
-    anywhere = np.zeros(len(P), bool)
-    for views in frames:
-        inside = np.ones(len(P), bool)
-        seen = np.zeros(len(P), bool)
-        for cam, alpha in views:
-            key = id(cam)
-            if key not in proj:
-                uv, z = cam.project(P)
-                ok = (z > cam.near) & np.isfinite(uv).all(-1)
-                col = np.floor(np.nan_to_num(uv[:, 0], nan=-1)).astype(np.int64)
-                row = np.floor(np.nan_to_num(uv[:, 1], nan=-1)).astype(np.int64)
-                ok &= (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-                proj[key] = (ok, np.where(ok, row, 0), np.where(ok, col, 0), cam)
-            ok, row, col, _ = proj[key]
-            a = alpha.detach().cpu().numpy() if isinstance(alpha, torch.Tensor) else np.asarray(alpha)
-            seen |= ok
-            inside &= ~ok | (a[row, col] >= threshold)
-        anywhere |= inside & seen
-    if not anywhere.any():
-        return None
-    step = float(np.prod(hi - lo) / len(P)) ** (1 / 3)
-    pts = P[anywhere]
-    return np.maximum(pts.min(0) - margin - step, lo), np.minimum(pts.max(0) + margin + step, hi)
 
 
 def in_hull(P: np.ndarray, views: list[tuple[Camera, torch.Tensor]], threshold: float = 0.5) -> np.ndarray:
@@ -181,4 +143,4 @@ def mean_foreground_color(samples, channels: int) -> np.ndarray:
     return acc / cnt if cnt else np.full(channels, 0.5)
 
 
-__all__ = ["floor_known", "hull_box", "scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]
+__all__ = ["floor_known", "scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]
