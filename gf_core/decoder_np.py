@@ -40,13 +40,13 @@ TIME_INTERPOLATIONS = ("decoder", "knots")
 
 def hermite_coefficients(knots: np.ndarray, tau: float):
     """R(tau) and dR/dtau as weights on four knot values, for residuals interpolated with cubic
-    Hermite segments whose tangents m_j are the three-point derivatives at the knots (second-order
-    one-sided ones at the first and last knot; the chord with two knots), so that a quadratic in
-    time, such as free fall, is reproduced with its exact velocity:
+    Hermite segments whose tangents m_j are the three-point derivatives at the interior knots, so
+    that a quadratic in time, such as free fall, is reproduced with its exact velocity away from the
+    clip's ends, and the chords at the first and last knot:
 
         interior:  m_j = -h1 / (h0 (h0 + h1)) R_{j-1} + (h1 - h0) / (h0 h1) R_j + h0 / (h1 (h0 + h1)) R_{j+1}
-        first:     m_0 = -(2 h1 + h2) / (h1 (h1 + h2)) R_0 + (h1 + h2) / (h1 h2) R_1 - h1 / (h2 (h1 + h2)) R_2
-        (h0 = k_j - k_{j-1}, h1 = k_{j+1} - k_j, h2 = k_{j+2} - k_{j+1}; the last knot mirrors the first)
+        first:     m_0 = (R_1 - R_0) / h1;  last: m_{F-1} = (R_{F-1} - R_{F-2}) / h_{F-2}
+        (h0 = k_j - k_{j-1}, h1 = k_{j+1} - k_j)
         R(tau) = H00(s) R_j + H10(s) h1 m_j + H01(s) R_{j+1} + H11(s) h1 m_{j+1},  s = (tau - k_j) / h1
 
     Returns (indices (4,) of knots j-1..j+2 clamped to the knots, value weights (4,), derivative
@@ -86,12 +86,10 @@ def tangent_weights(k: np.ndarray, i: int, j: int) -> np.ndarray:
     o = i - j + 1  # slot of knot i in the stencil j-1..j+2
     if f == 2:
         w[1], w[2] = -1.0 / (k[1] - k[0]), 1.0 / (k[1] - k[0])
-    elif i == 0:
-        h1, h2 = k[1] - k[0], k[2] - k[1]
-        w[o:o + 3] = (-(2 * h1 + h2) / (h1 * (h1 + h2)), (h1 + h2) / (h1 * h2), -h1 / (h2 * (h1 + h2)))
+    elif i == 0:  # the chord (a second-order one-sided difference amplifies noise fourfold here)
+        w[o], w[o + 1] = -1.0 / (k[1] - k[0]), 1.0 / (k[1] - k[0])
     elif i == f - 1:
-        ha, hb = k[f - 2] - k[f - 3], k[f - 1] - k[f - 2]
-        w[o - 2:o + 1] = (hb / (ha * (ha + hb)), -(ha + hb) / (ha * hb), (2 * hb + ha) / (hb * (ha + hb)))
+        w[o - 1], w[o] = -1.0 / (k[f - 1] - k[f - 2]), 1.0 / (k[f - 1] - k[f - 2])
     else:
         h0, h1 = k[i] - k[i - 1], k[i + 1] - k[i]
         w[o - 1:o + 2] = (-h1 / (h0 * (h0 + h1)), (h1 - h0) / (h0 * h1), h0 / (h1 * (h0 + h1)))

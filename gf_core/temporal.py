@@ -23,7 +23,8 @@ at knots (the training frames' tau), interpolated between them and constant outs
 still exactly A^0 at tau0. ``DecoderConfig.residual_interpolation = "hermite"`` joins the knots
 with cubic Hermite segments whose tangents are the three-point derivatives at the knots
 (``hermite_coefficients``): positions and velocities are continuous across the training frames,
-and a particle in free fall (positions quadratic in time) gets its exact velocity. "linear" (the
+and a particle in free fall (positions quadratic in time) gets its exact velocity away from the
+clip's first and last segment (chords there). "linear" (the
 files written before it) joins them with straight pieces, whose velocity jumps at every frame. At
 a knot both give R_j exactly, so a step at the training frames trains the same values either way. All
 T times of a training step go through the MLP as one batch (``forward_many``).
