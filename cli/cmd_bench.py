@@ -161,12 +161,9 @@ def run_render(args) -> int:
     check_device(args.device)
     need = max(counts) * 4 * 60 + max(resolutions) ** 2 * 4 * 40  # parameters, grads, images: bytes
     if args.device == "cpu":
-        import os
+        from gf_core.limits import require_memory
 
-        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        if need > 0.8 * avail:
-            raise InputError("--particles", f"{max(counts)} particles at {max(resolutions)}^2 need about "
-                                            f"{need / 2**30:.1f} GiB; {avail / 2**30:.1f} GiB are free")
+        require_memory("--particles", f"{max(counts)} particles at {max(resolutions)}^2", need)
     recs = bench_render(backends, counts, resolutions, repeats=args.repeats,
                         device=args.device, reference_max_work=args.reference_max_work)
     info = machine()

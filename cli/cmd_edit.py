@@ -50,6 +50,9 @@ def run(args) -> int:
                                args.add_box)):
         raise InputError("edit", "no edit given: use --remove-fraction, --remove-box, --remove-sphere, --translate "
                                  "or --add-box (gf-cli predict continues without editing)")
+    from gf_core.limits import check_seed
+
+    check_seed("--seed", args.seed)
     if args.remove_fraction is not None and not 0 <= args.remove_fraction < 1:
         raise InputError("--remove-fraction", f"must be in [0, 1), got {args.remove_fraction}")
     boxes = {f: _box(v, f) for f, v in (("--remove-box", args.remove_box), ("--add-box", args.add_box)) if v}

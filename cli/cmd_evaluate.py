@@ -47,6 +47,10 @@ def run(args) -> int:
         raise InputError("--upsample", f"must be an integer >= 1, got {args.upsample}")
     if args.rest_density is not None and not args.rest_density > 0:
         raise InputError("--rest-density", f"must be > 0 kg/m^3, got {args.rest_density}")
+    if args.out is not None:
+        from .cmd_simulate import check_out_dir
+
+        check_out_dir(args.out)
     recon = args.run / "recon.h5" if args.run.is_dir() else args.run
     if not recon.exists():
         raise InputError(recon, "no reconstruction here (run gf-cli reconstruct first)")

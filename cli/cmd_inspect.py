@@ -57,14 +57,14 @@ def summarise(path: Path, args) -> dict:
     import h5py
 
     from gf_core.errors import FormatError
-    from gf_core.io import RECON_FORMAT, SIM_FORMAT, read_recon, read_sim
+    from gf_core.io import RECON_FORMAT, SIM_FORMAT, file_format, read_recon, read_sim
 
     try:
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
+        with h5py.File(path, "r"):
+            pass
     except OSError as e:
         raise FormatError(path, f"not a dataset folder nor a readable HDF5 file ({e})") from None
-    fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
+    fmt = file_format(path)
     if fmt == SIM_FORMAT:
         s = read_sim(path)
         return {"kind": "sim", "complete": s.complete, "scene": s.scene, "solver": s.solver, "frames": s.num_frames,

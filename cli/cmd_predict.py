@@ -50,6 +50,10 @@ def load_state(args):
     if not recon.exists():
         raise InputError(recon, "no reconstruction here (run gf-cli reconstruct first)")
     r = read_recon(recon)
+    from gf_core.limits import require_memory
+
+    require_memory("--frames", f"{args.frames} frames of {r.num_particles} particles (positions and velocities)",
+                   float(args.frames) * r.num_particles * 24)
     fps = args.fps or r.config.get("fps") or 30.0
     return recon, r, state_at(r, args.at, velocity=args.velocity), float(fps)
 

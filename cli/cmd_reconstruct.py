@@ -132,7 +132,12 @@ def run(args) -> int:
     if args.max_particles is not None and args.init_particles is None:
         over["model"]["init_particles"] = min(args.max_particles, make_config(args.preset, args.config).model.init_particles)
     if args.seed is not None:
-        over.setdefault("train", {})["seed"] = args.seed
+        from gf_core.limits import check_seed
+
+        over.setdefault("train", {})["seed"] = check_seed("--seed", args.seed)
+    for opt, v in (("--fps", args.fps), ("--duration", args.duration)):
+        if v is not None and not (0 < v < float("inf")):
+            raise InputError(opt, f"must be a positive finite number, got {v}")
     if args.time_budget is not None:
         if not args.time_budget > 0:
             raise InputError("--time-budget", f"must be a positive number of seconds, got {args.time_budget}")
@@ -173,6 +178,13 @@ def run(args) -> int:
     if frames is not None:  # the held-out views are scored at the training times
         train = train.select_times(frames)
         test = test.with_times(train.times) if test is not None else None
+    if device == "cpu":
+        from gf_core.limits import require_memory
+        from gf_core.recon_config import training_bytes
+
+        require_memory("--max-particles", f"{cfg.model.max_particles} particles over {len(train.times)} frames "
+                                          "(parameters, gradients, optimiser state)",
+                       training_bytes(cfg, len(train.times)))
     print(f"dataset {args.dataset}: {len(train)} training images ({len(train.views)} views x {len(train.times)} "
           f"times){f', {len(test)} held-out' if test else ''}; preset {args.preset}, {cfg.phases.iterations} "
           f"iterations at most, device {device}", flush=True)

@@ -133,8 +133,14 @@ def check_options(args) -> None:
         raise InputError("--test-views", f"must be >= 0, got {args.test_views}")
     if args.resolution < 8:
         raise InputError("--resolution", f"must be >= 8 pixels, got {args.resolution}")
+    if args.resolution > 16384:
+        raise InputError("--resolution", f"must be <= 16384 pixels, got {args.resolution}")
+    if args.views + args.test_views > 1000:
+        raise InputError("--views", f"--views + --test-views must be <= 1000, got {args.views + args.test_views}")
     if args.samples < 1:
         raise InputError("--samples", f"must be >= 1, got {args.samples}")
+    if not 0 <= args.seed < 2**31:
+        raise InputError("--seed", f"Blender's render seed is an integer in [0, 2^31), got {args.seed}")
     if not (math.isfinite(args.fov) and 0 < args.fov < 180):
         raise InputError("--fov", f"must be an angle in (0, 180) degrees, got {args.fov}")
     if args.threads < 0:
@@ -158,8 +164,9 @@ def check_out(args) -> None:
 
     from render_data.render_dataset import IMAGE_OPTIONS, ResumeMismatch, check_resume
 
-    if args.out.exists() and not args.out.is_dir():
-        raise InputError(args.out, "--out must be a folder, and this is a file")
+    from .cmd_simulate import check_out_dir
+
+    check_out_dir(args.out)
     if getattr(args, "force", False) or not args.out.exists():
         return
     opts = {k: getattr(args, k) for k in IMAGE_OPTIONS}

@@ -54,6 +54,23 @@ def check_out_file(path: Path, flag: str = "--out") -> None:
             break
 
 
+def check_out_dir(path: Path, flag: str = "--out") -> None:
+    """An output folder we will be able to write, checked before any work: not an existing file,
+    and it (or the nearest folder above it that exists) writable."""
+    from gf_core.errors import InputError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(path, f"{flag} must be a folder, and this is a file")
+    for up in [path, *path.parents]:
+        if up.exists():
+            if not up.is_dir():
+                raise InputError(path, f"{flag}: {up} is a file, so it cannot hold {path.name}")
+            if not os.access(up, os.W_OK | os.X_OK):
+                raise InputError(path, f"{flag}: {up} is not writable")
+            break
+
+
 def check_options(args) -> None:
     from gf_core.errors import InputError
 
@@ -65,6 +82,10 @@ def check_options(args) -> None:
         raise InputError("--settle", f"must be >= 0 seconds, got {args.settle}")
     if args.particles is not None and args.particles < 1:
         raise InputError("--particles", f"must be >= 1, got {args.particles}")
+    if args.particles is not None:
+        from gf_core.limits import PARTICLE_BYTES, require_memory
+
+        require_memory("--particles", f"{args.particles} particles", float(args.particles) * PARTICLE_BYTES)
     if args.viscosity is not None and not (args.viscosity >= 0 and args.viscosity != float("inf")):
         raise InputError("--viscosity", f"must be >= 0 m^2/s, got {args.viscosity}")
     from .cmd_reconstruct import check_device

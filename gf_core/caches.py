@@ -140,8 +140,11 @@ def density_grid(positions, sigmas, weights, voxel: float, *, cutoff: float = 3.
     pad = cutoff * float(sigmas.max()) + voxel
     lo = positions.min(0) - pad
     dims = np.maximum(np.ceil((positions.max(0) + pad - lo) / voxel).astype(int) + 1, 1)
-    if int(np.prod(dims)) > 512 ** 3:
-        raise ValueError(f"a {dims.tolist()} voxel grid is too large; choose a larger voxel size")
+    if float(np.prod(dims.astype(np.float64))) > 512 ** 3:
+        from .errors import InputError
+
+        raise InputError("--voxel", f"a voxel of {voxel:.3g} m makes a {' x '.join(map(str, dims.tolist()))} grid "
+                                    f"around the particles, more than 512^3 voxels; choose a larger voxel size")
     reach = int(min(max_reach, math.ceil(cutoff * float(sigmas.max()) / voxel)))
     off = np.arange(-reach, reach + 1)
     stencil = np.stack(np.meshgrid(off, off, off, indexing="ij"), -1).reshape(-1, 3)

@@ -29,7 +29,12 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def _as_matrix(m, shape, what: str, where: str) -> np.ndarray:
-    a = np.asarray(m, dtype=np.float64)
+    try:
+        a = np.asarray(m, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        r = repr(m)
+        raise InputError(where, f"{what} must be a {'x'.join(map(str, shape))} matrix of numbers, "
+                                f"got {r if len(r) <= 60 else r[:57] + '...'}") from None
     if a.shape != shape:
         raise InputError(where, f"{what} must have shape {shape}, got {a.shape}")
     if not np.all(np.isfinite(a)):

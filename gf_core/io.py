@@ -50,6 +50,34 @@ def atomic_path(path: "str | os.PathLike[str]"):
             os.unlink(tmp)
 
 
+@contextlib.contextmanager
+def folder_lock(folder, what: str = "run"):
+    """Hold ``folder/.lock`` (an exclusive advisory lock) for the block: a second process that
+    would write the same folder is refused at once with one line instead of mixing its files in.
+    The lock goes with the process, so a killed run leaves nothing that blocks a resume."""
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    f = open(folder / ".lock", "a+")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise InputError(folder, f"another process ({holder}) is writing this {what} folder; wait for it "
+                                 "to finish or choose another --out") from None
+    try:
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}")
+        f.flush()
+        yield
+    finally:
+        f.close()
+
+
 def atomic_write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
@@ -70,7 +98,8 @@ def file_format(path) -> str | None:
             v = f.attrs.get("format")
     except OSError:
         return None
-    return v.decode() if isinstance(v, bytes) else v
+    v = v.decode(errors="replace") if isinstance(v, bytes) else v
+    return v if isinstance(v, str) else None
 
 
 def _open_checked(path, fmt: str, version: int):
@@ -85,16 +114,27 @@ def _open_checked(path, fmt: str, version: int):
         raise FormatError(path, f"not a readable HDF5 file ({e})") from None
     got_fmt = f.attrs.get("format")
     got_fmt = got_fmt.decode() if isinstance(got_fmt, bytes) else got_fmt
-    if got_fmt != fmt:
+    if not isinstance(got_fmt, str) or got_fmt != fmt:
         f.close()
-        raise FormatError(path, f"expected format {fmt!r}, found {got_fmt!r}")
-    got_ver = int(f.attrs.get("version", -1))
+        raise FormatError(path, f"expected format {fmt!r}, found {_short(got_fmt)}")
+    raw_ver = f.attrs.get("version", -1)
     versions = version if isinstance(version, tuple) else (version,)
+    try:
+        got_ver = int(raw_ver) if np.ndim(raw_ver) == 0 and float(raw_ver) == int(raw_ver) else None
+    except (TypeError, ValueError, OverflowError):
+        got_ver = None
     if got_ver not in versions:
         f.close()
-        raise FormatError(path, f"{fmt} version {got_ver} is not supported (this toolkit reads "
+        raise FormatError(path, f"{fmt} version {_short(raw_ver)} is not supported (this toolkit reads "
                                 f"version {' and '.join(map(str, versions))})")
     return f
+
+
+def _short(v, n: int = 60) -> str:
+    if isinstance(v, bytes):
+        v = v.decode(errors="replace")
+    r = repr(v.tolist() if isinstance(v, np.ndarray) else v)
+    return r if len(r) <= n else r[: n - 3] + "..."
 
 
 def _read(f, name: str, path, *, ndim: int | None = None, shape_tail: tuple | None = None,
@@ -102,6 +142,8 @@ def _read(f, name: str, path, *, ndim: int | None = None, shape_tail: tuple | No
     if name not in f:
         raise FormatError(path, f"missing dataset {name!r}")
     a = np.asarray(f[name][()])
+    if a.dtype.kind not in "biuf":
+        raise FormatError(path, f"dataset {name!r} must hold numbers, holds {a.dtype} ({_short(a)})")
     if ndim is not None and a.ndim != ndim:
         raise FormatError(path, f"dataset {name!r} must have {ndim} dimensions, has shape {a.shape}")
     if shape_tail is not None and tuple(a.shape[-len(shape_tail):]) != tuple(shape_tail):
@@ -120,10 +162,14 @@ def _attr(f, name: str, path, cast=float):
     v = f.attrs[name]
     if isinstance(v, bytes):
         v = v.decode()
+    if cast is str and not isinstance(v, str):
+        raise FormatError(path, f"attribute {name!r} must be a string, got {_short(v)}")
     try:
+        if np.ndim(v) != 0:
+            raise TypeError
         v = cast(v)
-    except (TypeError, ValueError):
-        raise FormatError(path, f"attribute {name!r} has an invalid value {v!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise FormatError(path, f"attribute {name!r} has an invalid value {_short(v)}") from None
     if cast is float and not np.isfinite(v):
         raise FormatError(path, f"attribute {name!r} is not finite ({v})")
     return v
@@ -131,11 +177,18 @@ def _attr(f, name: str, path, cast=float):
 
 def _json_attr(f, name: str, path) -> dict:
     raw = f.attrs.get(name, "{}")
-    raw = raw.decode() if isinstance(raw, bytes) else str(raw)
+    raw = raw.decode(errors="replace") if isinstance(raw, bytes) else raw
+    if not isinstance(raw, str):
+        raise FormatError(path, f"attribute {name!r} must be a JSON string, got {_short(raw)}")
     try:
-        return json.loads(raw)
+        d = json.loads(raw)
     except json.JSONDecodeError as e:
         raise FormatError(path, f"attribute {name!r} is not valid JSON ({e})") from None
+    except RecursionError:
+        raise FormatError(path, f"attribute {name!r} is JSON nested too deeply") from None
+    if not isinstance(d, dict):
+        raise FormatError(path, f"attribute {name!r} must be a JSON object, got {_short(d)}")
+    return d
 
 
 def _check_finite(name: str, a: np.ndarray, where: str) -> None:
@@ -340,7 +393,11 @@ def read_sim(path) -> SimData:
         if np.any(dmax <= dmin):
             raise FormatError(path, f"domain_max {dmax.tolist()} must exceed domain_min {dmin.tolist()}")
         stats = {k: np.asarray(v[()]) for k, v in f["stats"].items()} if "stats" in f else {}
-        complete = bool(f.attrs.get("complete", True))
+        complete = f.attrs.get("complete", True)
+        if np.ndim(complete) != 0 or not isinstance(complete.item() if hasattr(complete, "item") else complete,
+                                                    (bool, int, np.bool_)):
+            raise FormatError(path, f"attribute 'complete' must be true or false, got {_short(complete)}")
+        complete = bool(complete)
         if pos.shape[0] == 0:
             raise FormatError(path, "holds no frames (the simulation stopped before its first frame)")
         src = None
@@ -361,9 +418,12 @@ def read_sim(path) -> SimData:
 def _read_vec_attr(f, name, path) -> np.ndarray:
     if name not in f.attrs:
         raise FormatError(path, f"missing attribute {name!r}")
-    v = np.asarray(f.attrs[name], np.float64)
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise FormatError(path, f"attribute {name!r} must be 3 finite numbers, got {v.tolist()}")
+    try:
+        v = np.asarray(f.attrs[name], np.float64)
+    except (TypeError, ValueError):
+        v = None
+    if v is None or v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise FormatError(path, f"attribute {name!r} must be 3 finite numbers, got {_short(f.attrs[name])}")
     return v
 
 
@@ -420,7 +480,42 @@ class ReconData:
 _CANONICAL = (("means", (3,)), ("log_scales", (3,)), ("quats", (4,)))
 
 
+def _finite_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def _numbers(v, n=None) -> bool:
+    return isinstance(v, list) and (n is None or len(v) == n) and all(_finite_number(x) for x in v)
+
+
+# The keys of recon.h5's ``config`` attribute that readers use (predict, evaluate, export, the
+# Blender extension), each optional: name -> (test, what it must be)
+RECON_CONFIG_SCHEMA = {
+    "spacing": (lambda v: _finite_number(v) and v > 0, "a positive number (metres)"),
+    "h": (lambda v: _finite_number(v) and v > 0, "a positive number (metres)"),
+    "fluid_volume": (lambda v: _finite_number(v) and v > 0, "a positive number (cubic metres)"),
+    "canonical_time_s": (_finite_number, "a finite number (seconds)"),
+    "fps": (lambda v: _finite_number(v) and v > 0, "a positive number or null"),
+    "channels": (lambda v: v in (1, 3) and not isinstance(v, bool), "1 or 3"),
+    "frame_times_s": (lambda v: _numbers(v) and all(b > a for a, b in zip(v, v[1:])),
+                      "a list of increasing finite numbers (seconds)"),
+    "time_policy": (lambda v: v in ("clamp", "error"), "'clamp' or 'error'"),
+    "dataset": (lambda v: isinstance(v, str), "a path (a string)"),
+    "bounds": (lambda v: isinstance(v, dict) and _numbers(v.get("lo"), 3) and _numbers(v.get("hi"), 3)
+               and all(h > lo for lo, h in zip(v["lo"], v["hi"]))
+               and all(_finite_number(v.get(k, 0.0)) for k in ("log_scale_min", "log_scale_max", "inset")),
+               "{lo: [x, y, z], hi: [x, y, z]} with hi > lo, finite log_scale_min/max and inset"),
+}
+
+
+def _check_recon_config(cfg: dict, where) -> None:
+    for key, (ok, what) in RECON_CONFIG_SCHEMA.items():
+        if cfg.get(key) is not None and not ok(cfg[key]):
+            raise FormatError(where, f"config key {key!r} must be {what}, got {_short(cfg[key])}")
+
+
 def _check_recon(r: ReconData, where) -> None:
+    _check_recon_config(r.config, where)
     n = r.means.shape[0] if r.means.ndim == 2 else -1
     for name, tail in _CANONICAL:
         a = getattr(r, name)
@@ -473,6 +568,11 @@ def _check_recon(r: ReconData, where) -> None:
     for name in ("means", "log_scales", "quats", "logit_opacity", "sh"):
         if not np.all(np.isfinite(getattr(r, name))):
             raise FormatError(where, f"{name} contains NaN or infinite values")
+    # finite but beyond what float32 rendering survives: exp(log_scale) and squared distances overflow
+    for name, limit, unit in (("means", 1e6, "metres"), ("log_scales", 30.0, "(log metres)")):
+        big = float(np.abs(getattr(r, name)).max()) if getattr(r, name).size else 0.0
+        if big > limit:
+            raise FormatError(where, f"{name} reach {big:.3g} {unit}; more than {limit:g} is not a fluid scene")
 
 
 def write_recon(path, r: ReconData) -> Path:

@@ -165,6 +165,11 @@ def add_box(s: State, lo, hi, spacing: float, velocity=(0.0, 0.0, 0.0)) -> State
     if len(s) == 0:
         raise InputError("--add-box", "there is no particle left to take an appearance from")
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    from .limits import PARTICLE_BYTES, require_memory
+
+    count = float(np.prod(np.maximum(hi - lo, 0.0) / spacing))
+    require_memory("--add-box", f"{count:.3g} lattice points at the particles' spacing {spacing:.4g} m "
+                                "(and their simulation)", count * PARTICLE_BYTES)
     axes = [np.arange(lo[k] + 0.5 * spacing, hi[k], spacing) for k in range(3)]
     if any(a.size == 0 for a in axes):
         raise InputError("--add-box", f"the box {lo.tolist()}..{hi.tolist()} holds no lattice point at spacing "

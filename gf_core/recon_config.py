@@ -136,6 +136,7 @@ class ReconConfig:
 
     def validate(self) -> "ReconConfig":
         where = "reconstruct config"
+        check_ranges(self, where)
         m, lo, ph = self.model, self.loss, self.phases
         if m.sh_degree not in (0, 1, 2, 3):
             raise InputError(where, f"model.sh_degree must be 0-3, got {m.sh_degree}")
@@ -208,6 +209,79 @@ class ReconConfig:
 
 
 SECTIONS = {f.name: f.type for f in dataclasses.fields(ReconConfig)}
+
+# The range of every numeric key (lists: of each element): (low, high, low excluded). Counts are bounded
+# so that no value can ask for more memory than a workstation has before any work starts (the
+# memory of the particles themselves: recon_config.training_bytes); rates and weights so that
+# float32 arithmetic cannot overflow.
+_W = (0.0, 1e6, False)   # a loss weight or a factor on one
+_LR = (0.0, 10.0, False)  # a learning rate
+RANGES = {
+    "model.sh_degree": (0, 3, False), "model.init_particles": (1, 10**8, False),
+    "model.max_particles": (1, 10**8, False), "model.init_opacity": (0.0, 1.0, True),
+    "model.init_scale": (0.0, 100.0, True), "model.carve_threshold": (0.0, 1.0, False),
+    "model.wall_inset": (0.0, 2.0, False),
+    "decoder.feature_dim": (1, 4096, False), "decoder.hidden_layers": (1, 64, False),
+    "decoder.hidden_width": (1, 8192, False), "decoder.n_freqs": (0, 20, False),
+    "decoder.canonical_time": (0.0, 1.0, False),
+    **{f"loss.{k}": _W for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor",
+                                 "settle", "motion", "smooth")},
+    "loss.blur_start": (0.0, 0.5, False),
+    "density.h_factor": (0.0, 10.0, True), "density.k": (1, 1024, False), "density.refresh_every": (1, 10**8, False),
+    **{f"lr.{k}": _LR for k in ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest", "features", "mlp")},
+    "lr.means_final": (0.0, 1.0, True), "lr.canonical_dynamic": (0.0, 100.0, False),
+    "lr.residuals": (0.0, 1000.0, False), "lr.residuals_beta1": (0.0, 1.0, False),
+    "lr.residuals_final": (0.0, 1.0, True),
+    "phases.iterations": (1, 10**8, False), "phases.fractions": _W, "phases.time_fractions": _W,
+    "phases.min_fraction": (0.0, 1.0, False), "phases.plateau_window": (1, 10**8, False),
+    "phases.plateau_tol": (0.0, 1.0, False), "phases.phase1_reg": _W, "phases.phase2_density": _W,
+    "phases.time_curriculum": (0.0, 1.0, False), "phases.error_sampling": (0.0, 1.0, False),
+    "phases.error_sampling_from": (2, 3, False), "phases.residuals_from": (2, 3, False),
+    "densify.phases": (1, 3, False), "densify.start": (0, 10**8, False), "densify.every": (1, 10**8, False),
+    "densify.stop_fraction": (0.0, 1.0, False), "densify.grad_threshold": (0.0, 1e3, False),
+    "densify.clone_max_scale": (0.0, 100.0, False), "densify.prune_opacity": (0.0, 1.0, False),
+    "densify.prune_max_scale": (0.0, 1e3, True),
+    "train.seed": (0, 2**63 - 1, False), "train.views_per_step": (0, 10**4, False),
+    "train.times_per_step": (1, 10**4, False), "train.log_every": (1, 10**8, False),
+    "train.eval_every": (1, 10**8, False), "train.eval_frames": (0, 10**6, False),
+    "train.checkpoint_every": (1, 10**8, False), "train.max_bad_steps": (1, 10**6, False),
+    "train.time_budget_s": (0.0, 1e8, False),
+}
+
+
+def check_ranges(cfg: "ReconConfig", where: str) -> None:
+    """Every numeric key (and every element of a numeric list) finite and inside RANGES."""
+    import math
+
+    for sec in SECTIONS:
+        obj = getattr(cfg, sec)
+        for f in dataclasses.fields(obj):
+            key, v = f"{sec}.{f.name}", getattr(obj, f.name)
+            values = v if isinstance(v, list) else [v]
+            if key in ("model.scene_box", "model.floor"):
+                continue  # checked with their own shapes below
+            for x in values:
+                if isinstance(x, bool) or not isinstance(x, (int, float)):
+                    if isinstance(v, list) and key in RANGES:
+                        raise InputError(where, f"{key} must be a list of numbers, got {v!r}")
+                    continue
+                if not math.isfinite(x):
+                    raise InputError(where, f"{key} must be a finite number, got {x!r}")
+                if key not in RANGES:
+                    continue
+                lo, hi, open_lo = RANGES[key]
+                if x > hi or x < lo or (open_lo and x == lo):
+                    raise InputError(where, f"{key} must be in {'(' if open_lo else '['}{lo:g}, {hi:g}], got {x!r}")
+
+
+def training_bytes(cfg: "ReconConfig", frames: int = 1) -> int:
+    """A lower bound of the memory a reconstruction holds per particle budget: canonical parameters,
+    features and per-frame residuals, each with its gradient and Adam's two moments (float32)."""
+    m, d = cfg.model, cfg.decoder
+    per = 3 + 3 + 4 + 1 + 3 * (m.sh_degree + 1) ** 2 + d.feature_dim
+    if d.residuals:
+        per += frames * (10 + 3 * d.color_residuals + d.opacity_residuals)
+    return int(m.max_particles) * per * 4 * 4
 
 
 def _merge(cfg: ReconConfig, data: dict, where: str) -> None:

@@ -864,10 +864,34 @@ class Trainer:
         return write_recon(self.out / "recon.h5", r)
 
     def run(self, *, resume: bool = False) -> dict:
-        self.out.mkdir(parents=True, exist_ok=True)
+        from .io import folder_lock
+
+        with folder_lock(self.out, "reconstruction"):
+            return self._run(resume=resume)
+
+    def trim_metrics(self) -> None:
+        """metrics.jsonl as of the checkpoint: rows logged after it (a run killed between
+        checkpoints) and a torn last line go, so the resumed run appends no duplicate."""
+        mpath = self.out / "metrics.jsonl"
+        if not mpath.exists():
+            return
+        keep = []
+        for line in mpath.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                break  # a line torn by the kill, and nothing after it
+            if int(row.get("iteration", 0)) > self.iteration:
+                break
+            keep.append(line)
+        with atomic_path(mpath) as tmp:
+            Path(tmp).write_text("".join(ln + "\n" for ln in keep))
+
+    def _run(self, *, resume: bool = False) -> dict:
         ck = self.out / CHECKPOINT
         if resume and ck.exists():
             self.load_checkpoint(ck)
+            self.trim_metrics()
             self.log(f"resumed from {ck}: iteration {self.iteration}, phase {self.phase}, {len(self.model)} particles")
         else:
             if resume:

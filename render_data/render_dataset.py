@@ -21,6 +21,7 @@ import shutil
 import struct
 import sys
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -120,13 +121,25 @@ def load_particles(path: str) -> dict:
 
 
 def png_ok(path: Path, size: int) -> bool:
+    """A complete PNG of ``size`` x ``size``: the signature, the size in its header, every chunk
+    whole with a matching CRC, and the closing IEND chunk (a file torn by a full disk or an
+    interrupted copy fails; such a frame is rendered again)."""
     try:
-        with open(path, "rb") as f:
-            head = f.read(24)
+        data = Path(path).read_bytes()
     except OSError:
         return False
-    return (len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n"
-            and struct.unpack(">II", head[16:24]) == (size, size))
+    if len(data) < 24 or data[:8] != b"\x89PNG\r\n\x1a\n" or struct.unpack(">II", data[16:24]) != (size, size):
+        return False
+    i = 8
+    while i + 12 <= len(data):
+        n = struct.unpack(">I", data[i:i + 4])[0]
+        end = i + 12 + n
+        if end > len(data) or zlib.crc32(data[i + 4:i + 8 + n]) != struct.unpack(">I", data[i + 8 + n:end])[0]:
+            return False
+        if data[i + 4:i + 8] == b"IEND":
+            return True
+        i = end
+    return False
 
 
 IDENTITY_FILE = "render_source.json"

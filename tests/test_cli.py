@@ -98,7 +98,7 @@ BAD = [
     (["bench", "render", "--repeats", "0"], "--repeats: must be >= 1"),
     (["bench", "render", "--particles", "1000", "--out", "{sim}/b.json"], "is a file, so it cannot hold"),
     (["bench", "sim", "--solvers", "sph"], "unknown solver 'sph'"),
-    (["bench", "render", "--particles", "2000000000"], "GiB are free"),
+    (["bench", "render", "--particles", "2000000000"], "GiB free"),
     (["demo", "--time-budget", "0", "--out", "{tmp}/d"], "--time-budget: must be a positive number"),
     (["reconstruct", "{tmp}", "--out", "{tmp}/r", "--iterations", "0"], "--iterations: must be >= 1"),
     (["export", "{tmp}", "--format", "ply"], "no such reconstruction"),

@@ -80,6 +80,14 @@ def test_resumable_and_deterministic(sim_file, tmp_path, capsys):
     assert again.shape == first.shape
     assert int(diff.max()) <= 3 and float((diff > 0).mean()) < 0.005, (int(diff.max()), float((diff > 0).mean()))
     assert not list(out.rglob("*.partial*"))
+    # a torn image (a full disk or an interrupted copy: the header is there, the pixels are not)
+    torn = out / "train" / "v03_f00004.png"
+    torn.write_bytes(torn.read_bytes()[:60])
+    capsys.readouterr()
+    render(sim_file, out)
+    log = capsys.readouterr().out
+    assert "frame 3/3 (sim frame 4, t = 0.200 s): 1 images" in log and "frame 2/3 (sim frame 2): already" in log
+    assert cv2.imread(str(torn), cv2.IMREAD_UNCHANGED).shape == (64, 64, 4)
 
 
 def test_resume_refuses_another_simulation(sim_file, tmp_path, capsys):

@@ -33,13 +33,47 @@ def read_json(path: Path) -> dict:
     if not path.exists():
         raise InputError(path, "file does not exist")
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8") as f:
             data = json.load(f)
     except json.JSONDecodeError as e:
         raise InputError(path, f"malformed JSON: {e}") from None
+    except UnicodeDecodeError as e:
+        raise InputError(path, f"not UTF-8 text (JSON must be UTF-8): byte {e.start} cannot be decoded") from None
+    except RecursionError:
+        raise InputError(path, "JSON nested too deeply to be a dataset description") from None
     if not isinstance(data, dict):
         raise InputError(path, "expected a JSON object at the top level")
     return data
+
+
+def short(v, n: int = 60) -> str:
+    """``repr(v)`` cut to ``n`` characters, for error messages about a bad value."""
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."
+
+
+def path_value(d: dict, key: str, json_path: Path, where: str) -> str | None:
+    """``d[key]`` as a file path (a non-empty string), None when absent or null."""
+    v = d.get(key)
+    if v is None:
+        return None
+    if not isinstance(v, str) or not v:
+        raise InputError(json_path, f"{where}: {key!r} must be a file path (a non-empty string), got {short(v)}")
+    return v
+
+
+def matrix_value(v, json_path: Path, where: str, key: str, shapes=((4, 4), (3, 4))) -> np.ndarray:
+    """A JSON matrix as float64 of one of ``shapes``, finite, else one line naming the key."""
+    want = " or ".join(f"{r}x{c}" for r, c in shapes)
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        a = None
+    if a is None or a.shape not in shapes:
+        raise InputError(json_path, f"{where}: {key!r} must be a {want} matrix of numbers, got {short(v)}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(json_path, f"{where}: {key!r} contains NaN or infinite values")
+    return a
 
 
 def resolve_image(root: Path, file_path: str, json_path: Path, what: str = "image") -> Path:
@@ -119,12 +153,13 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
             raise InputError(json_path, f"{where}: missing 'file_path'")
         if "transform_matrix" not in fr:
             raise InputError(json_path, f"{where}: missing 'transform_matrix'")
-        c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        c2w = matrix_value(fr["transform_matrix"], json_path, where, "transform_matrix")
         if c2w.shape == (3, 4):
             c2w = np.vstack([c2w, [0, 0, 0, 1]])
-        if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
-            raise InputError(json_path, f"{where}: transform_matrix must be a finite 4x4 matrix")
-        img = resolve_image(root, fr["file_path"], json_path)
+        file_path = path_value(fr, "file_path", json_path, where)
+        if file_path is None:
+            raise InputError(json_path, f"{where}: 'file_path' is null")
+        img = resolve_image(root, file_path, json_path)
         merged = {**meta, **fr}
         w, h = _num(merged, "w", json_path, where), _num(merged, "h", json_path, where)
         size = image_size(img) if (check_sizes or w is None or h is None) else None
@@ -164,7 +199,7 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
             view = explicit + view_offset
         else:
             view = view_of_pose.setdefault(key, len(view_of_pose) + view_offset)
-        mask = fr.get("mask_path")
+        mask = path_value(fr, "mask_path", json_path, where)
         mask = resolve_image(root, mask, json_path, "mask") if mask else None
         records.append(FrameRecord(camera=cam, time=t, view_id=view, file=img, mask_file=mask))
     if with_s:  # seconds already: no rescaling of a normalised "time"
@@ -173,7 +208,7 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
 
 
 def _gt_file(root: Path, meta: dict, json_path: Path) -> Path | None:
-    name = meta.get("gt_particles")
+    name = path_value(meta, "gt_particles", json_path, "top level")
     if name:
         p = root / name
         if not p.exists():
@@ -187,8 +222,8 @@ def _background(meta: dict, channels: int, json_path: Path | str = "dataset") ->
     bg = meta.get("background", [0.0, 0.0, 0.0])
     vals = [bg] if isinstance(bg, (int, float)) and not isinstance(bg, bool) else bg
     if not isinstance(vals, list) or len(vals) not in (1, 3) or \
-            any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in vals):
-        raise InputError(json_path, f"'background' must be a number or 3 numbers, got {bg!r}")
+            any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 <= x <= 1 for x in vals):
+        raise InputError(json_path, f"'background' must be a colour: a number or 3 numbers in [0, 1], got {short(bg)}")
     vals = [float(x) for x in vals] * (3 if len(vals) == 1 else 1)
     return tuple(vals[:channels]) if channels == 1 else tuple(vals[:3])
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord
-from .nerf import _background, _num, intrinsics, read_json, view_id
+from .nerf import _background, _num, intrinsics, path_value, read_json, view_id
 
 
 def video_info(path: Path) -> tuple[int, int, int, float]:
@@ -155,9 +155,9 @@ def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = Fa
     records: list[FrameRecord] = []
     for k, entry in enumerate(cams):
         where = f"camera {k}"
-        if not isinstance(entry, dict) or "video" not in entry:
+        if not isinstance(entry, dict) or entry.get("video") is None:
             raise InputError(json_path, f"{where}: missing 'video'")
-        video = root / entry["video"]
+        video = root / path_value(entry, "video", json_path, where)
         n, w, h, fps_file = video_info(video)
         ew, eh = _num(entry, "w", json_path, where), _num(entry, "h", json_path, where)
         if (ew is not None and int(ew) != w) or (eh is not None and int(eh) != h):
