@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, short_repr
 
 # OpenGL camera axes -> OpenCV camera axes (flip y and z); its own inverse.
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -32,9 +32,8 @@ def _as_matrix(m, shape, what: str, where: str) -> np.ndarray:
     try:
         a = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
-        r = repr(m)
         raise InputError(where, f"{what} must be a {'x'.join(map(str, shape))} matrix of numbers, "
-                                f"got {r if len(r) <= 60 else r[:57] + '...'}") from None
+                                f"got {short_repr(m)}") from None
     if a.shape != shape:
         raise InputError(where, f"{what} must have shape {shape}, got {a.shape}")
     if not np.all(np.isfinite(a)):

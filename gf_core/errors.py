@@ -5,6 +5,16 @@ from __future__ import annotations
 import os
 
 
+def short_repr(v, n: int = 60) -> str:
+    """A bad value for an error message: its repr (arrays as lists, bytes decoded), cut to ``n``."""
+    if isinstance(v, bytes):
+        v = v.decode(errors="replace")
+    if hasattr(v, "tolist"):
+        v = v.tolist()
+    r = repr(v)
+    return r if len(r) <= n else r[: n - 3] + "..."
+
+
 class GFError(Exception):
     """Base class of every error the toolkit raises on purpose."""
 

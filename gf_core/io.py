@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FormatError, InputError
+from .errors import FormatError, InputError, short_repr
 
 SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
 # version 2 adds the optional decoder residuals, version 3 the optional colour and opacity residuals; a file is
@@ -116,7 +116,7 @@ def _open_checked(path, fmt: str, version: int):
     got_fmt = got_fmt.decode() if isinstance(got_fmt, bytes) else got_fmt
     if not isinstance(got_fmt, str) or got_fmt != fmt:
         f.close()
-        raise FormatError(path, f"expected format {fmt!r}, found {_short(got_fmt)}")
+        raise FormatError(path, f"expected format {fmt!r}, found {short_repr(got_fmt)}")
     raw_ver = f.attrs.get("version", -1)
     versions = version if isinstance(version, tuple) else (version,)
     try:
@@ -125,16 +125,10 @@ def _open_checked(path, fmt: str, version: int):
         got_ver = None
     if got_ver not in versions:
         f.close()
-        raise FormatError(path, f"{fmt} version {_short(raw_ver)} is not supported (this toolkit reads "
+        raise FormatError(path, f"{fmt} version {short_repr(raw_ver)} is not supported (this toolkit reads "
                                 f"version {' and '.join(map(str, versions))})")
     return f
 
-
-def _short(v, n: int = 60) -> str:
-    if isinstance(v, bytes):
-        v = v.decode(errors="replace")
-    r = repr(v.tolist() if isinstance(v, np.ndarray) else v)
-    return r if len(r) <= n else r[: n - 3] + "..."
 
 
 def _read(f, name: str, path, *, ndim: int | None = None, shape_tail: tuple | None = None,
@@ -143,7 +137,7 @@ def _read(f, name: str, path, *, ndim: int | None = None, shape_tail: tuple | No
         raise FormatError(path, f"missing dataset {name!r}")
     a = np.asarray(f[name][()])
     if a.dtype.kind not in "biuf":
-        raise FormatError(path, f"dataset {name!r} must hold numbers, holds {a.dtype} ({_short(a)})")
+        raise FormatError(path, f"dataset {name!r} must hold numbers, holds {a.dtype} ({short_repr(a)})")
     if ndim is not None and a.ndim != ndim:
         raise FormatError(path, f"dataset {name!r} must have {ndim} dimensions, has shape {a.shape}")
     if shape_tail is not None and tuple(a.shape[-len(shape_tail):]) != tuple(shape_tail):
@@ -163,13 +157,13 @@ def _attr(f, name: str, path, cast=float):
     if isinstance(v, bytes):
         v = v.decode()
     if cast is str and not isinstance(v, str):
-        raise FormatError(path, f"attribute {name!r} must be a string, got {_short(v)}")
+        raise FormatError(path, f"attribute {name!r} must be a string, got {short_repr(v)}")
     try:
         if np.ndim(v) != 0:
             raise TypeError
         v = cast(v)
     except (TypeError, ValueError, OverflowError):
-        raise FormatError(path, f"attribute {name!r} has an invalid value {_short(v)}") from None
+        raise FormatError(path, f"attribute {name!r} has an invalid value {short_repr(v)}") from None
     if cast is float and not np.isfinite(v):
         raise FormatError(path, f"attribute {name!r} is not finite ({v})")
     return v
@@ -179,7 +173,7 @@ def _json_attr(f, name: str, path) -> dict:
     raw = f.attrs.get(name, "{}")
     raw = raw.decode(errors="replace") if isinstance(raw, bytes) else raw
     if not isinstance(raw, str):
-        raise FormatError(path, f"attribute {name!r} must be a JSON string, got {_short(raw)}")
+        raise FormatError(path, f"attribute {name!r} must be a JSON string, got {short_repr(raw)}")
     try:
         d = json.loads(raw)
     except json.JSONDecodeError as e:
@@ -187,7 +181,7 @@ def _json_attr(f, name: str, path) -> dict:
     except RecursionError:
         raise FormatError(path, f"attribute {name!r} is JSON nested too deeply") from None
     if not isinstance(d, dict):
-        raise FormatError(path, f"attribute {name!r} must be a JSON object, got {_short(d)}")
+        raise FormatError(path, f"attribute {name!r} must be a JSON object, got {short_repr(d)}")
     return d
 
 
@@ -396,7 +390,7 @@ def read_sim(path) -> SimData:
         complete = f.attrs.get("complete", True)
         if np.ndim(complete) != 0 or not isinstance(complete.item() if hasattr(complete, "item") else complete,
                                                     (bool, int, np.bool_)):
-            raise FormatError(path, f"attribute 'complete' must be true or false, got {_short(complete)}")
+            raise FormatError(path, f"attribute 'complete' must be true or false, got {short_repr(complete)}")
         complete = bool(complete)
         if pos.shape[0] == 0:
             raise FormatError(path, "holds no frames (the simulation stopped before its first frame)")
@@ -423,7 +417,7 @@ def _read_vec_attr(f, name, path) -> np.ndarray:
     except (TypeError, ValueError):
         v = None
     if v is None or v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise FormatError(path, f"attribute {name!r} must be 3 finite numbers, got {_short(f.attrs[name])}")
+        raise FormatError(path, f"attribute {name!r} must be 3 finite numbers, got {short_repr(f.attrs[name])}")
     return v
 
 
@@ -511,7 +505,7 @@ RECON_CONFIG_SCHEMA = {
 def _check_recon_config(cfg: dict, where) -> None:
     for key, (ok, what) in RECON_CONFIG_SCHEMA.items():
         if cfg.get(key) is not None and not ok(cfg[key]):
-            raise FormatError(where, f"config key {key!r} must be {what}, got {_short(cfg[key])}")
+            raise FormatError(where, f"config key {key!r} must be {what}, got {short_repr(cfg[key])}")
 
 
 def _check_recon(r: ReconData, where) -> None:

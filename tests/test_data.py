@@ -249,7 +249,7 @@ def test_zero_focal_length(tmp_path, rng):
 def test_nan_in_pose(tmp_path, rng):
     path = nerf_one(tmp_path, rng)
     path.write_text(path.read_text().replace("[1.0,", "[NaN,", 1).replace("[0.0,", "[NaN,", 1))
-    with pytest.raises(InputError, match=r"transforms_train.json: frame 0: transform_matrix must be a finite"):
+    with pytest.raises(InputError, match=r"transforms_train.json: frame 0: 'transform_matrix' contains NaN or infinite values"):
         load_dataset(tmp_path)
 
 

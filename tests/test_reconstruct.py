@@ -827,5 +827,5 @@ def test_bad_view_id_and_background_name_the_file(blob, tmp_path):
     meta["frames"][0]["view_id"] = 0
     meta["background"] = "black"
     p.write_text(json.dumps(meta))
-    with pytest.raises(InputError, match="'background' must be a number or 3 numbers"):
+    with pytest.raises(InputError, match="'background' must be a colour: a number or 3 numbers in \\[0, 1\\], got 'black'"):
         load_dataset(root)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..errors import InputError
+from ..errors import InputError, short_repr
 from .dataset import FluidDataset, FrameRecord
 from .images import image_size
 
@@ -46,19 +46,13 @@ def read_json(path: Path) -> dict:
     return data
 
 
-def short(v, n: int = 60) -> str:
-    """``repr(v)`` cut to ``n`` characters, for error messages about a bad value."""
-    r = repr(v)
-    return r if len(r) <= n else r[: n - 3] + "..."
-
-
 def path_value(d: dict, key: str, json_path: Path, where: str) -> str | None:
     """``d[key]`` as a file path (a non-empty string), None when absent or null."""
     v = d.get(key)
     if v is None:
         return None
     if not isinstance(v, str) or not v:
-        raise InputError(json_path, f"{where}: {key!r} must be a file path (a non-empty string), got {short(v)}")
+        raise InputError(json_path, f"{where}: {key!r} must be a file path (a non-empty string), got {short_repr(v)}")
     return v
 
 
@@ -70,7 +64,7 @@ def matrix_value(v, json_path: Path, where: str, key: str, shapes=((4, 4), (3, 4
     except (TypeError, ValueError, OverflowError):
         a = None
     if a is None or a.shape not in shapes:
-        raise InputError(json_path, f"{where}: {key!r} must be a {want} matrix of numbers, got {short(v)}")
+        raise InputError(json_path, f"{where}: {key!r} must be a {want} matrix of numbers, got {short_repr(v)}")
     if not np.all(np.isfinite(a)):
         raise InputError(json_path, f"{where}: {key!r} contains NaN or infinite values")
     return a
@@ -223,7 +217,7 @@ def _background(meta: dict, channels: int, json_path: Path | str = "dataset") ->
     vals = [bg] if isinstance(bg, (int, float)) and not isinstance(bg, bool) else bg
     if not isinstance(vals, list) or len(vals) not in (1, 3) or \
             any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 <= x <= 1 for x in vals):
-        raise InputError(json_path, f"'background' must be a colour: a number or 3 numbers in [0, 1], got {short(bg)}")
+        raise InputError(json_path, f"'background' must be a colour: a number or 3 numbers in [0, 1], got {short_repr(bg)}")
     vals = [float(x) for x in vals] * (3 if len(vals) == 1 else 1)
     return tuple(vals[:channels]) if channels == 1 else tuple(vals[:3])
 
