@@ -36,6 +36,19 @@ def register(sub):
     p.set_defaults(func=run)
 
 
+def _writable_from(path: Path, start: Path, flag: str) -> None:
+    """The nearest of ``start`` and its parents that exists is a folder we may write in."""
+    from gf_core.errors import InputError
+
+    for up in [start, *start.parents]:
+        if up.exists():
+            if not up.is_dir():
+                raise InputError(path, f"{flag}: {up} is a file, so it cannot hold {path.name}")
+            if not os.access(up, os.W_OK | os.X_OK):
+                raise InputError(path, f"{flag}: {up} is not writable")
+            return
+
+
 def check_out_file(path: Path, flag: str = "--out") -> None:
     """An output file we will be able to write, checked before any work: not a folder, a parent
     that is (or can be made) a writable folder."""
@@ -44,14 +57,7 @@ def check_out_file(path: Path, flag: str = "--out") -> None:
     path = Path(path)
     if path.exists() and path.is_dir():
         raise InputError(path, f"{flag} names a folder; give a file name (e.g. {path / 'sim.h5'})")
-    parent = path.parent
-    for up in [parent, *parent.parents]:
-        if up.exists():
-            if not up.is_dir():
-                raise InputError(path, f"{flag}: {up} is a file, so it cannot hold {path.name}")
-            if not os.access(up, os.W_OK | os.X_OK):
-                raise InputError(path, f"{flag}: {up} is not writable")
-            break
+    _writable_from(path, path.parent, flag)
 
 
 def check_out_dir(path: Path, flag: str = "--out") -> None:
@@ -62,13 +68,7 @@ def check_out_dir(path: Path, flag: str = "--out") -> None:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError(path, f"{flag} must be a folder, and this is a file")
-    for up in [path, *path.parents]:
-        if up.exists():
-            if not up.is_dir():
-                raise InputError(path, f"{flag}: {up} is a file, so it cannot hold {path.name}")
-            if not os.access(up, os.W_OK | os.X_OK):
-                raise InputError(path, f"{flag}: {up} is not writable")
-            break
+    _writable_from(path, path, flag)
 
 
 def check_options(args) -> None:
