@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -357,7 +356,7 @@ def _video_cameras(base) -> dict:
 
 
 def _video_dataset(base, tmp: Path) -> Path:
-    """The base dataset as a video layout: one MP4 per training view (made once, then copied)."""
+    """The base dataset as a video layout: one FFV1 video (.mkv) per training view (made once, then copied)."""
     cache = base["root"] / "video"
     if not cache.exists():
         from gf_core.data.images import read_image, to_float
@@ -377,4 +376,4 @@ def _video_dataset(base, tmp: Path) -> Path:
     return root
 
 
-__all__ = ["Case", "make_base", "cases", "math"]
+__all__ = ["Case", "make_base", "cases"]
