@@ -305,8 +305,9 @@ def energies(model: FluidModel, r, times, states, sim, rest_density: float | Non
     (``states``: ``model.at(t, with_velocity=True)`` for each of ``times``).
 
     Mass: the rest density (``rest_density``, else the ground truth's, else water's 1000 kg/m^3)
-    times the fluid volume the reconstruction estimated from the masks, shared equally by its
-    particles (else the rest density times a particle spacing cubed). Potential energy is measured
+    times the fluid volume recon.h5 gives (``fluid_volume``: the trained particles' SPH estimate,
+    ``metrics.particle_volume``; older files: the masks' hull), shared equally by its particles
+    (else the rest density times a particle spacing cubed). Potential energy is measured
     from the ground truth's floor (its domain's lowest z), else the reconstruction's domain floor.
     The ground truth's energies use its own velocities and rest density x spacing^3 per particle."""
     rho = float(rest_density or (sim.rest_density if sim is not None else 1000.0))

@@ -488,6 +488,7 @@ RECON_CONFIG_SCHEMA = {
     "spacing": (lambda v: _finite_number(v) and v > 0, "a positive number (metres)"),
     "h": (lambda v: _finite_number(v) and v > 0, "a positive number (metres)"),
     "fluid_volume": (lambda v: _finite_number(v) and v > 0, "a positive number (cubic metres)"),
+    "hull_volume": (lambda v: _finite_number(v) and v > 0, "a positive number (cubic metres)"),
     "canonical_time_s": (_finite_number, "a finite number (seconds)"),
     "fps": (lambda v: _finite_number(v) and v > 0, "a positive number or null"),
     "channels": (lambda v: v in (1, 3) and not isinstance(v, bool), "1 or 3"),

@@ -189,6 +189,19 @@ def acceleration(dp_prev: torch.Tensor, dp: torch.Tensor, dp_next: torch.Tensor,
     return (a * a).sum(-1).mean()
 
 
+def residual_change(r: torch.Tensor, r_nbrs: torch.Tensor, spacing: float) -> torch.Tensor:
+    """Not in the paper: mean_i of |R_i(k) - R_i(k')|^2 / spacing^2 over the neighbouring training
+    frames k' of frame k (the mean over them), in particle spacings per frame. The position
+    residuals R are fitted frame by frame, and the images cannot tell which particle is which
+    inside the fluid, so without this term the particles may trade places from one frame to the
+    next while every frame's image stays right; their velocities (and the kinetic energy, motion
+    blur, predictions that use them) then measure that shuffle, not the flow. With a frozen decoder
+    carrying the bulk motion, this penalises only the motion the residuals add.
+    ``r`` (N, 3): the residual at frame k; ``r_nbrs`` (N, M, 3) at its M neighbours."""
+    d = r_nbrs - r[:, None, :]
+    return (d * d).sum(-1).mean() / (spacing * spacing)
+
+
 def _to_camera(means: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
     """(I, N, 3) world points in each of I cameras (I, 4, 4): (I, N, 3) camera coordinates."""
     return means @ viewmat[:, :3, :3].transpose(1, 2) + viewmat[:, None, :3, 3]

@@ -34,6 +34,11 @@ class ModelConfig:
     wall_inset: float = 0.5        # particle centres stay this many particle spacings inside the scene box
 
 
+# the loss weights of LossConfig (each a non-negative number; 0 computes nothing)
+LOSS_WEIGHTS = ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor", "settle", "motion",
+                "smooth", "residual_motion")
+
+
 @dataclass
 class LossConfig:
     rgb: float = TABLE1_WEIGHTS["rgb"]
@@ -48,6 +53,7 @@ class LossConfig:
     settle: float = 0.0            # unsupported fluid over a wet floor settles (not in the paper), losses.settling
     motion: float = 0.0            # least motion between the step's times (not in the paper), see losses.py
     smooth: float = 0.0            # particle acceleration at the drawn frames, through the residuals (losses.acceleration)
+    residual_motion: float = 0.0   # change of the position residuals to the neighbouring frames (losses.residual_change)
     background: str = "random"     # random | black | white | dataset (see reconstruct.py)
     blur_start: float = 0.02       # phase 2 starts comparing images blurred by this x image width (sigma)
 
@@ -165,7 +171,7 @@ class ReconConfig:
             raise InputError(where, f"model.wall_inset must be in [0, 2] particle spacings, got {m.wall_inset}")
         if lo.background not in ("random", "black", "white", "dataset"):
             raise InputError(where, f"loss.background must be random, black, white or dataset, got {lo.background!r}")
-        for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor", "settle", "motion", "smooth"):
+        for k in LOSS_WEIGHTS:
             v = getattr(lo, k)
             if not (isinstance(v, (int, float)) and v >= 0):
                 raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")
@@ -224,8 +230,7 @@ RANGES = {
     "decoder.feature_dim": (1, 4096, False), "decoder.hidden_layers": (1, 64, False),
     "decoder.hidden_width": (1, 8192, False), "decoder.n_freqs": (0, 20, False),
     "decoder.canonical_time": (0.0, 1.0, False),
-    **{f"loss.{k}": _W for k in ("rgb", "ssim", "density", "aniso", "volume", "opacity", "color", "hull", "floor",
-                                 "settle", "motion", "smooth")},
+    **{f"loss.{k}": _W for k in LOSS_WEIGHTS},
     "loss.blur_start": (0.0, 0.5, False),
     "density.h_factor": (0.0, 10.0, True), "density.k": (1, 1024, False), "density.refresh_every": (1, 10**8, False),
     **{f"lr.{k}": _LR for k in ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest", "features", "mlp")},

@@ -60,6 +60,10 @@ add the same per-frame correction to each particle's base colour (degree-0 SH) a
 at the rates of ``lr.sh_dc`` and ``lr.logit_opacity`` times ``lr.residuals``: a rendered water
 surface glints differently in every frame, and a particle of one look for the whole clip can show
 that only by moving. ``lr.residuals_final`` lets all residual rates decay over phase 3.
+The images cannot tell which particle is which inside the fluid, so residuals fitted frame by
+frame may let particles trade places between frames unseen; ``loss.residual_motion`` penalises
+each particle's residual change to the neighbouring frames (``losses.residual_change``) and
+``loss.smooth`` its acceleration there (``losses.acceleration``).
 
 Density loss (Eq. 5): neighbour lists (up to K = ``density.k`` nearest within h) come from the
 grid search of ``gf_core.neighbors`` on the decoded positions of a frame, are kept per frame and
@@ -90,6 +94,7 @@ import torch
 from . import losses as L
 from .errors import GFError, InputError
 from .io import atomic_path, write_recon
+from .metrics import particle_volume
 from .model import Bounds, FluidModel
 from .neighbors import knn
 from .recon_config import ReconConfig, from_dict
@@ -186,7 +191,8 @@ def loss_weights(cfg: ReconConfig, phase: int, ramp: float) -> dict:
     lo, ph = cfg.loss, cfg.phases
     w = {"rgb": lo.rgb, "ssim": lo.ssim, "opacity": lo.opacity, "color": lo.color, "hull": lo.hull,
          "floor": lo.floor, "settle": lo.settle, "motion": lo.motion if phase > 1 else 0.0,
-         "smooth": lo.smooth if phase >= ph.residuals_from else 0.0}
+         "smooth": lo.smooth if phase >= ph.residuals_from else 0.0,
+         "residual_motion": lo.residual_motion if phase >= ph.residuals_from else 0.0}
     r = ph.phase1_reg
     if phase == 1:
         w.update(density=0.0, aniso=r * lo.aniso, volume=r * lo.volume)
@@ -600,6 +606,16 @@ class Trainer:
         frame = 1.0 / (len(times) - 1)
         return L.acceleration(dp[0], dp[1], dp[2], taus[1] - taus[0], taus[2] - taus[1], frame, self.spacing)
 
+    def _residual_motion_term(self, t: float) -> torch.Tensor:
+        """losses.residual_change at training time ``t``: its frame's position residual against the
+        neighbouring training frames' (one at the clip's ends). The knots are the training frames,
+        so the residual there is the parameter itself (no interpolation)."""
+        times = self.train.unique_times
+        j = int(np.argmin(np.abs(times - t)))
+        r = self.model.decoder.residual_dp
+        nbrs = [k for k in (j - 1, j + 1) if 0 <= k < r.shape[1]]
+        return L.residual_change(r[:, j], r[:, nbrs], self.spacing)
+
     def _cam_tensors(self, i: int):
         if i not in self._camt:
             self._camt[i] = self.train.cameras[i].to_torch(device=self.device, dtype=torch.float32)
@@ -682,6 +698,8 @@ class Trainer:
                 sm = self._smooth_term(float(t))
                 if sm is not None:
                     terms_t["smooth"] = w["smooth"] * sm
+            if w["residual_motion"] > 0 and use_dec and dec.knots is not None:
+                terms_t["residual_motion"] = w["residual_motion"] * self._residual_motion_term(float(t))
             if w["volume"] > 0:
                 terms_t["volume"] = w["volume"] * L.volume_consistency(p["scales"])
             if w["aniso"] > 0:
@@ -851,7 +869,8 @@ class Trainer:
 
     # ---- the run ------------------------------------------------------------------------------------------
     def result_config(self) -> dict:
-        return {"config": self.cfg.to_dict(), "spacing": self.spacing, "h": self.h, "fluid_volume": self.volume,
+        return {"config": self.cfg.to_dict(), "spacing": self.spacing, "h": self.h,
+                "fluid_volume": self.particle_volume(), "hull_volume": self.volume,
                 "scene_box_source": self.box_source, "init": self.init_source, "dataset_fingerprint": self.fingerprint,
                 "dataset": str(self._train_ds.root), "canonical_time_s": self.t_canon,
                 "time_source": self.dataset_meta.get("time_source", "seconds"), "channels": self.channels,
@@ -859,8 +878,23 @@ class Trainer:
                 "frame_times_s": [float(t) for t in self.train.unique_times],
                 "fps": float(self.dataset_meta["fps"]) if self.dataset_meta.get("fps") else None}
 
+    def particle_volume(self) -> float:
+        """The fluid volume the trained particles fill at the training frames (``metrics.particle_volume``,
+        the density loss's kernel and h), what recon.h5 gives as ``fluid_volume`` (the particles' mass,
+        and so every energy, and the spacing ``predict`` simulates at, follow from it); the volume the
+        masks' hull held at the start (``self.volume``, the spacing and h of training) is ``hull_volume``."""
+        times = [None] if self.static else [float(t) for t in self.train.unique_times]
+        frames = []
+        with torch.no_grad():
+            for i in range(0, len(times), 8):  # eight frames per pass through the MLP
+                frames += [p["means"] for p in self.model.at_many(times[i:i + 8])]
+        return particle_volume(frames, self.h)
+
     def write_result(self, metrics: dict) -> Path:
-        r = self.model.to_recon(config=self.result_config(), metrics=metrics)
+        config = self.result_config()
+        self.log(f"fluid volume {config['fluid_volume']:.3g} m^3 from the particles' SPH density (the masks' hull "
+                 f"held {self.volume:.3g} m^3): the particles' mass and energies follow from it")
+        r = self.model.to_recon(config=config, metrics=metrics)
         return write_recon(self.out / "recon.h5", r)
 
     def run(self, *, resume: bool = False) -> dict:

@@ -184,6 +184,46 @@ def test_acceleration_term_is_the_second_difference_and_reaches_only_the_residua
     assert tr.model.decoder.features.grad is None  # the frozen decoder gets nothing
 
 
+def test_residual_change_term_is_zero_for_equal_residuals_and_reaches_only_its_frames(blob, tmp_path):
+    """losses.residual_change: 0 when the residuals agree, |delta|^2 / spacing^2 otherwise; in the
+    trainer (loss.residual_motion) it reaches the drawn frame's and its neighbours' residuals only,
+    and one neighbour at the clip's ends."""
+    from gf_core import losses as L
+
+    r = torch.randn(40, 3)
+    assert float(L.residual_change(r, torch.stack([r, r], 1), 0.1)) == 0.0
+    d = torch.tensor([0.02, 0.0, 0.0])
+    assert float(L.residual_change(r, (r + d)[:, None], 0.01)) == pytest.approx(4.0, rel=1e-5)
+    cfg = small_config(phases={"iterations": 200, "residuals_from": 3}, loss={"residual_motion": 0.01})
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "s", log=quiet)
+    tr.initialise()
+    tr.phase = 3
+    with torch.no_grad():
+        tr.model.decoder.residual_dp.normal_(0, 0.01)
+    times = tr.train.unique_times
+    for j, frames in ((0, {0, 1}), (2, {1, 2, 3}), (len(times) - 1, {len(times) - 2, len(times) - 1})):
+        tr.model.decoder.residual_dp.grad = None
+        tr._residual_motion_term(float(times[j])).backward()
+        g = tr.model.decoder.residual_dp.grad.abs().sum((0, 2))
+        assert set(torch.nonzero(g).flatten().tolist()) == frames
+    assert tr.model.decoder.features.grad is None
+
+
+def test_particle_volume_is_the_volume_a_packed_block_fills():
+    """metrics.particle_volume: N / the median SPH number density; a jittered lattice block of
+    12^3 particles at 1 cm fills 12^3 cm^3 (each particle its cell); several frames average; no
+    particles is an error."""
+    from gf_core.metrics import particle_volume
+
+    g = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.01
+    x = g + np.random.default_rng(0).normal(0, 0.001, g.shape)
+    true = len(g) * 0.01 ** 3
+    assert particle_volume([x], 0.025) == pytest.approx(true, rel=0.06)
+    assert particle_volume([x, 2 * x], 0.05) == pytest.approx(4.5 * true, rel=0.1)  # 1x and 8x the block
+    with pytest.raises(ValueError, match="no particles"):
+        particle_volume([np.zeros((0, 3))], 0.025)
+
+
 # ---- the scene box and the floor a user has ------------------------------------------------------
 @pytest.mark.parametrize("argv, message", [
     (["--scene-box", "0,0,0,1,1"], "--scene-box: expected six finite numbers"),
@@ -238,6 +278,8 @@ def test_scene_box_and_floor_reach_the_trainer_and_recon_h5(blob, tmp_path):
     assert r.config["scene_box_source"] == "config"
     assert np.allclose(r.config["config"]["model"]["scene_box"], box, atol=1e-5)
     assert r.config["bounds"]["lo"] == pytest.approx(box[0], abs=1e-5)
+    # the fluid volume (the particles' mass) comes from the trained particles, the hull's beside it
+    assert r.config["fluid_volume"] > 0 and r.config["hull_volume"] > 0
     with pytest.raises(InputError, match="model.floor must be"):
         small_config(model={"floor": [0.0, 1.0]})
 
