@@ -104,6 +104,8 @@ def test_killed_anywhere_resumes_to_the_uninterrupted_images(sim_file, tmp_path)
 
     args = ["render-dataset", str(sim_file), "--resolution", "64", "--samples", "4", "--frames", "0:5:2"]
     render(sim_file, tmp_path / "a")
+    ref = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*.png"))
+    assert len(ref) == 15  # 5 views x 3 frames
     out = tmp_path / "b"
     proc = subprocess.Popen([sys.executable, "-m", "gf_cli.main", *args, "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -115,13 +117,12 @@ def test_killed_anywhere_resumes_to_the_uninterrupted_images(sim_file, tmp_path)
     time.sleep(random.Random(1).uniform(0.0, 1.0))
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    assert len(list(out.rglob("*.png"))) < 18, "the render ended before the kill; the test needs a longer one"
+    assert len(list(out.rglob("*.png"))) < len(ref), "the render ended before the kill; the test needs a longer one"
     again = subprocess.run([sys.executable, "-m", "gf_cli.main", *args, "--out", str(out)],
                            capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     assert "frame 1/3 (sim frame 0): already rendered, skipped" in again.stdout + again.stderr
-    ref = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*.png"))
-    assert sorted(p.relative_to(out) for p in out.rglob("*.png")) == ref and len(ref) == 18
+    assert sorted(p.relative_to(out) for p in out.rglob("*.png")) == ref
     for rel in ref:
         a = cv2.imread(str(tmp_path / "a" / rel), cv2.IMREAD_UNCHANGED)
         b = cv2.imread(str(out / rel), cv2.IMREAD_UNCHANGED)
@@ -129,8 +130,11 @@ def test_killed_anywhere_resumes_to_the_uninterrupted_images(sim_file, tmp_path)
         diff = np.abs(a.astype(np.int16) - b.astype(np.int16))  # see test_resumable_and_deterministic
         assert int(diff.max()) <= 3 and float((diff > 0).mean()) < 0.005, (rel, int(diff.max()))
     assert not list(out.rglob("*.partial*"))
-    assert json.loads((out / "transforms_train.json").read_text()) == \
-        json.loads((tmp_path / "a" / "transforms_train.json").read_text())
+    fa, fb = (json.loads((d / "transforms_train.json").read_text())["frames"] for d in (tmp_path / "a", out))
+    assert [{k: v for k, v in f.items() if k != "transform_matrix"} for f in fb] == \
+        [{k: v for k, v in f.items() if k != "transform_matrix"} for f in fa]
+    # the cameras: equal up to float32 rounding (Blender's matrix_world of a scene built again)
+    assert np.allclose([f["transform_matrix"] for f in fb], [f["transform_matrix"] for f in fa], atol=1e-6)
 
 
 def test_resume_refuses_another_simulation(sim_file, tmp_path, capsys):
