@@ -592,13 +592,17 @@ class Trainer:
             gate = over & held[1]
         return L.settling(pos, gate, float(lo[2]), self.spacing)
 
+    def _frame_index(self, t: float) -> int:
+        """The training frame (index into ``train.unique_times``, the residuals' knots) nearest ``t``."""
+        return int(np.argmin(np.abs(self.train.unique_times - t)))
+
     def _smooth_term(self, t: float):
         """losses.acceleration at training time ``t`` from the decoded positions there and at the
         neighbouring training frames (None at the clip's first and last frame). The canonical
         positions cancel in the second difference; with a frozen decoder the MLP's part comes from
         its cache, so only the residuals get gradients."""
         times = self.train.unique_times
-        j = int(np.argmin(np.abs(times - t)))
+        j = self._frame_index(t)
         if j == 0 or j == len(times) - 1:
             return None
         taus = [self.time_map.tau(float(times[k])) for k in (j - 1, j, j + 1)]
@@ -610,8 +614,7 @@ class Trainer:
         """losses.residual_change at training time ``t``: its frame's position residual against the
         neighbouring training frames' (one at the clip's ends). The knots are the training frames,
         so the residual there is the parameter itself (no interpolation)."""
-        times = self.train.unique_times
-        j = int(np.argmin(np.abs(times - t)))
+        j = self._frame_index(t)
         r = self.model.decoder.residual_dp
         nbrs = [k for k in (j - 1, j + 1) if 0 <= k < r.shape[1]]
         return L.residual_change(r[:, j], r[:, nbrs], self.spacing)
