@@ -12,8 +12,9 @@ GaussFluids method): canonical particles + per-particle transform features + one
 Phases: (1) the canonical frame alone, 3DGS-style, particles started inside the visual hull
 carved from the alpha masks; (2) every frame, the time decoder learns the motion while the
 density loss rises to 10% of its weight; (3) density, volume and anisotropy weights rise to
-their final values. Each phase ends at a plateau of its image loss or at its share of
---iterations. Densify/prune runs within --max-particles, in every phase with the water preset
+their final values. Each phase ends at a plateau of its image loss (after its share of the
+preset's schedule if it still improves then, at most phases.limit_factor times that share), at
+its share of --iterations when given, or at its share of --time-budget when given. Densify/prune runs within --max-particles, in every phase with the water preset
 ([densify] phases). The water preset adds,
 beyond the paper, per-frame residuals from phase 3 on: pose corrections and base-colour
 corrections of every particle at each training frame ([decoder] residuals, color_residuals).
@@ -36,7 +37,10 @@ def register(sub):
                    help="configuration preset (default: water)")
     p.add_argument("--config", type=Path, default=None, help="TOML file overriding preset keys (default: none)")
     p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
-    p.add_argument("--iterations", type=int, default=None, help="total iteration budget (default: the preset's)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="total iterations, split between the phases as their caps (default: the preset's schedule "
+                        "of phases.iterations, each phase ending at the plateau of its image loss, at most "
+                        "phases.limit_factor x its cap)")
     p.add_argument("--max-particles", type=int, default=None, help="particle budget (default: the preset's)")
     p.add_argument("--init-particles", type=int, default=None, help="particles at the start (default: the preset's)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's, 0)")
@@ -123,7 +127,8 @@ def run(args) -> int:
     if args.iterations is not None:
         if args.iterations < 1:
             raise InputError("--iterations", f"must be >= 1, got {args.iterations}")
-        over.setdefault("phases", {})["iterations"] = args.iterations
+        # the iterations asked for, exactly: the caps end the phases (no run past them while improving)
+        over.setdefault("phases", {}).update(iterations=args.iterations, limit_factor=1.0)
     for opt, key in ((args.max_particles, "max_particles"), (args.init_particles, "init_particles")):
         if opt is not None:
             if opt < 1:
@@ -186,9 +191,14 @@ def run(args) -> int:
                                           "(parameters, gradients, optimiser state)",
                        training_bytes(cfg, len(train.times)))
     print(f"dataset {args.dataset}: {len(train)} training images ({len(train.views)} views x {len(train.times)} "
-          f"times){f', {len(test)} held-out' if test else ''}; preset {args.preset}, {cfg.phases.iterations} "
-          f"iterations at most, device {device}", flush=True)
-    bar = None if args.quiet else tqdm(total=cfg.phases.iterations, unit="it", file=sys.stderr, dynamic_ncols=True)
+          f"times){f', {len(test)} held-out' if test else ''}; preset {args.preset}, "
+          + (f"{cfg.train.time_budget_s:g} s" if cfg.train.time_budget_s > 0 else
+             f"{cfg.phases.iterations} iterations" if cfg.phases.limit_factor <= 1 else
+             f"{cfg.phases.iterations} iterations or more to each phase's plateau "
+             f"(at most {round(cfg.phases.limit_factor * cfg.phases.iterations)})")
+          + f", device {device}", flush=True)
+    most = cfg.phases.iterations * (cfg.phases.limit_factor if cfg.train.time_budget_s <= 0 else 1)
+    bar = None if args.quiet else tqdm(total=round(most), unit="it", file=sys.stderr, dynamic_ncols=True)
 
     def progress(line):
         if bar is None:

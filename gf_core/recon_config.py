@@ -84,12 +84,13 @@ class LRConfig:
 
 @dataclass
 class PhaseConfig:
-    iterations: int = 6000         # total budget; phase caps are fractions of it
+    iterations: int = 6000         # the schedule's length; phase caps are fractions of it
     fractions: list = field(default_factory=lambda: [0.2, 0.45, 0.35])
     time_fractions: list = field(default_factory=list)  # with a time budget: shares of it ([] = as fractions)
     min_fraction: float = 0.25     # a phase runs at least this fraction of its cap
     plateau_window: int = 400      # iterations
     plateau_tol: float = 0.005     # relative improvement of the smoothed image loss
+    limit_factor: float = 3.0      # without a time budget: a phase still improving at its cap goes on, at most this x its cap
     phase1_reg: float = 0.1        # lambda_a, lambda_v in phase 1 as a fraction of the final ones
     phase2_density: float = 0.1    # lambda_d reaches this fraction by the end of phase 2
     time_curriculum: float = 0.5   # phase 2 samples times near the canonical one, widening to the clip over this fraction
@@ -239,7 +240,8 @@ RANGES = {
     "lr.residuals_final": (0.0, 1.0, True),
     "phases.iterations": (1, 10**8, False), "phases.fractions": _W, "phases.time_fractions": _W,
     "phases.min_fraction": (0.0, 1.0, False), "phases.plateau_window": (1, 10**8, False),
-    "phases.plateau_tol": (0.0, 1.0, False), "phases.phase1_reg": _W, "phases.phase2_density": _W,
+    "phases.plateau_tol": (0.0, 1.0, False),
+    "phases.limit_factor": (1.0, 100.0, False), "phases.phase1_reg": _W, "phases.phase2_density": _W,
     "phases.time_curriculum": (0.0, 1.0, False), "phases.error_sampling": (0.0, 1.0, False),
     "phases.error_sampling_from": (2, 3, False), "phases.residuals_from": (2, 3, False),
     "densify.phases": (1, 3, False), "densify.start": (0, 10**8, False), "densify.every": (1, 10**8, False),

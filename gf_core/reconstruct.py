@@ -2,7 +2,9 @@
 ``temporal``), the losses (``losses``), densify/prune (``strategy``) and the renderer.
 
 Phases (without a time budget each ends when its smoothed image loss stops improving -- the
-plateau test below -- or at its cap, a fraction of the iteration budget; with a time budget,
+plateau test below; its cap, a fraction of ``phases.iterations``, sets its schedule (ramps, time
+window, densification, rate decay), and a phase still improving at its cap goes on at the cap's
+settings, for at most ``phases.limit_factor`` times its cap; with a time budget,
 ``train.time_budget_s``, each runs for its share of the seconds, ``phases.time_fractions``, and
 the last one to the end of the budget, whatever the iteration count; the log and recon.h5's
 metrics say why each phase ended):
@@ -13,8 +15,9 @@ metrics say why each phase ended):
    final value.
 3. lambda_a, lambda_v and lambda_d rise linearly to their final values (Table 1), then hold.
 A static scene (one time) has no decoder: phases 2 and 3 refine the canonical particles.
-Ramps span the first ``phases.min_fraction`` of a phase's cap, and the plateau test only runs
-after them, so every ramp completes.
+Ramps span the first ``phases.min_fraction`` of a phase's cap, and the plateau test only watches
+the loss after them (and, in phase 2, once the time window is the whole clip), so every ramp
+completes and the loss it compares comes from one set of weights and frames.
 
 Plateau test: the image loss (lambda_r L1 + lambda_s D-SSIM) is smoothed with an exponential
 moving average (time constant ``plateau_window / 8`` iterations); the phase has plateaued when
@@ -311,7 +314,7 @@ class Trainer:
                                        for i in canon], self.channels)
         # a fluid particle's centre lies half a spacing from the wall it rests on, as in the simulators
         # (model.wall_inset): clamped to the box's faces instead, a sheet on the floor sits half a
-        # spacing too low (BENCHMARKS.md, seventeenth session)
+        # spacing too low (docs/experiments/2026-12-02-wall-inset.md)
         bounds = Bounds.for_box(lo, hi, self.spacing, mc.wall_inset * self.spacing)
         self.model = FluidModel.from_points(
             torch.as_tensor(pts, dtype=torch.float32, device=self.device), radius=mc.init_scale * self.spacing,
@@ -372,6 +375,10 @@ class Trainer:
         fr = self._shares(ph.fractions)
         return int(round(ph.iterations * fr[phase - 1] / sum(fr)))
 
+    def phase_limit(self, phase: int) -> int:
+        """Without a time budget: the iteration at which ``phase`` ends even if its loss still improves."""
+        return max(1, int(round(self.cfg.phases.limit_factor * self.phase_cap(phase))))
+
     def ramp_len(self, phase: int) -> int:
         return max(1, int(self.cfg.phases.min_fraction * self.phase_cap(phase)))
 
@@ -397,9 +404,11 @@ class Trainer:
         if budget > 0:  # the seconds alone: phases.iterations does not apply
             span = self.phase_deadline(self.phase) - self.phase_t0
             phase, run = (now - self.phase_t0) / max(span, 1e-9), now / budget
-        else:
-            phase = self.phase_it / max(self.phase_cap(self.phase), 1)
-            run = self.iteration / max(self.cfg.phases.iterations, 1)
+        else:  # where the schedule stands: the phases before at their caps, this one up to its cap
+            caps = [self.phase_cap(k) for k in (1, 2, 3)]
+            cap = caps[self.phase - 1]
+            phase = self.phase_it / max(cap, 1)
+            run = (sum(caps[:self.phase - 1]) + min(self.phase_it, cap)) / max(sum(caps), 1)
         return min(max(phase, 0.0), 1.0), min(max(run, 0.0), 1.0)
 
     def ramp(self, phase_progress: float) -> float:
@@ -962,8 +971,11 @@ class Trainer:
                     # iteration caps and the plateau test are for runs without one)
                     if budget > 0:
                         reason = "its share of the time budget is used" if late else None
-                    elif self.phase_it >= cap:
-                        reason = f"its iteration cap ({cap}, phases.iterations x its fraction)"
+                    elif self.phase_it >= self.phase_limit(self.phase):
+                        limit = self.phase_limit(self.phase)
+                        reason = (f"its iteration cap ({cap}, phases.iterations x its fraction)" if limit <= cap else
+                                  f"its iteration limit ({limit}, phases.limit_factor x its cap {cap}; "
+                                  "the image loss still improved)")
                     elif ramped and self.plateau.reached(self.phase_it):
                         reason = (f"plateau: the smoothed image loss improved less than {self.cfg.phases.plateau_tol:g} "
                                   f"over {self.cfg.phases.plateau_window} iterations")
@@ -990,7 +1002,8 @@ class Trainer:
                     self.phase_it += 1
                     if rec["finite"]:
                         img = rec["terms"]["image"]
-                        self.plateau.update(self.phase_it, img)
+                        if ramped:
+                            self.plateau.update(self.phase_it, img)
                         acc["n"] += 1
                         acc["psnr"] += rec["train_psnr"]
                         acc["loss"] += rec["loss"]

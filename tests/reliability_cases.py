@@ -48,7 +48,7 @@ def make_base(root: Path) -> dict:
     write_sim(root / "sim.h5", sim)
     ds = splat_dataset(root / "ds", sim, views=3, test_views=1, resolution=16)
     cfg = make_config("water", overrides={
-        "phases": {"iterations": 30}, "model": {"init_particles": 64, "max_particles": 128},
+        "phases": {"iterations": 30, "limit_factor": 1.0}, "model": {"init_particles": 64, "max_particles": 128},
         "decoder": {"hidden_width": 16, "hidden_layers": 1, "feature_dim": 4},
         "train": {"eval_every": 30, "checkpoint_every": 30}})
     reconstruct(load_dataset(ds), root / "run", cfg, log=lambda *a, **k: None)
@@ -66,6 +66,7 @@ hidden_layers = 1
 feature_dim = 4
 [phases]
 iterations = 2
+limit_factor = 1.0
 [train]
 eval_every = 2
 checkpoint_every = 2

@@ -35,7 +35,7 @@ def half_rate_run(blob, tmp_path_factory):
     """A reconstruction trained on every other frame (times 0, 0.2, 0.4, 0.6 s)."""
     run = tmp_path_factory.mktemp("half") / "run"
     cfg = make_config("water", overrides={
-        "phases": {"iterations": 900}, "model": {"init_particles": 500, "max_particles": 1000},
+        "phases": {"iterations": 900, "limit_factor": 1.0}, "model": {"init_particles": 500, "max_particles": 1000},
         "decoder": {"hidden_width": 128, "hidden_layers": 3}, "train": {"eval_every": 300, "checkpoint_every": 900}})
     reconstruct(load_dataset(blob).select_times(slice(None, None, 2)), run, cfg, log=quiet)
     return run

@@ -31,7 +31,7 @@ def quiet(*a, **k):
 
 
 def small_config(**over):
-    base = {"phases": {"iterations": 300}, "model": {"init_particles": 300, "max_particles": 600},
+    base = {"phases": {"iterations": 300, "limit_factor": 1.0}, "model": {"init_particles": 300, "max_particles": 600},
             "decoder": {"hidden_width": 64, "hidden_layers": 2}, "train": {"eval_every": 100, "checkpoint_every": 1000}}
     for sec, vals in over.items():
         base.setdefault(sec, {}).update(vals)
@@ -302,6 +302,35 @@ def test_a_run_with_a_time_budget_uses_it_all_and_says_why_each_phase_ended(blob
     # without a budget the caps end the phases, and the log says so
     m = reconstruct(load_dataset(blob), tmp_path / "run2", small_config(phases={"iterations": 60}), log=quiet)
     assert m["iterations"] == 60 and all("iteration cap" in e["reason"] for e in m["phase_ends"])
+
+
+
+def test_without_a_budget_a_phase_still_improving_at_its_cap_goes_on_to_its_plateau(blob, tmp_path):
+    """Without a time budget the caps set the schedule, not the end: a phase whose image loss still
+    improves at its cap goes on until the plateau test ends it, at most phases.limit_factor x its
+    cap. The plateau test watches the loss only once the ramps (and phase 2's widening time window)
+    are done, so a plateau comes no earlier than one window after them. Here the window (30
+    iterations) is longer than phase 1's cap (12), so phase 1 cannot end at its cap."""
+    window, factor = 30, 4.0
+    cfg = small_config(phases={"iterations": 60, "limit_factor": factor, "plateau_window": window},
+                       train={"eval_every": 10_000})
+    said = []
+    m = reconstruct(load_dataset(blob), tmp_path / "run", cfg, log=said.append)
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "probe", log=quiet)
+    caps = [tr.phase_cap(k) for k in (1, 2, 3)]
+    assert caps == [12, 27, 21]
+    ends, before = m["phase_ends"], 0
+    assert [e["phase"] for e in ends] == [1, 2, 3]
+    watched_from = [0.25 * caps[0], max(0.25, cfg.phases.time_curriculum) * caps[1], 0.25 * caps[2]]
+    for e, cap, start in zip(ends, caps, watched_from):
+        ran, before = e["iteration"] - before, e["iteration"]
+        if e["reason"].startswith("plateau"):
+            assert ran > start + window, (e, ran)
+        else:
+            assert ran == round(factor * cap) and "iteration limit" in e["reason"], (e, ran)
+    assert ends[0]["iteration"] > caps[0]  # phase 1 ran past its cap
+    assert m["iterations"] > 60
+    assert sum("phase 1 ends" in s for s in said) == 1
 
 
 # ---- D-NeRF time with time_s ------------------------------------------------------------------------

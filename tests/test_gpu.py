@@ -148,7 +148,7 @@ def test_reconstruct_runs_on_cuda(tmp_path):
     from gf_core.synthetic import falling_blob, splat_dataset
 
     root = splat_dataset(tmp_path / "blob", falling_blob())
-    cfg = make_config("water", overrides={"phases": {"iterations": 600}, "model": {"init_particles": 500,
+    cfg = make_config("water", overrides={"phases": {"iterations": 600, "limit_factor": 1.0}, "model": {"init_particles": 500,
                                                                                     "max_particles": 1000}})
     m = reconstruct(load_dataset(root), tmp_path / "run", cfg, test_dataset=load_dataset(root, split="test"),
                     device="cuda", log=lambda s: None)

@@ -320,7 +320,7 @@ def test_weight_schedule_follows_the_paper():
 
 # ---- the trainer on a scene with known particles ------------------------------------------------------
 def small_config(**over):
-    base = {"phases": {"iterations": 900}, "model": {"init_particles": 500, "max_particles": 1000},
+    base = {"phases": {"iterations": 900, "limit_factor": 1.0}, "model": {"init_particles": 500, "max_particles": 1000},
             "decoder": {"hidden_width": 128, "hidden_layers": 3}, "train": {"eval_every": 300, "checkpoint_every": 300}}
     for sec, vals in over.items():
         base.setdefault(sec, {}).update(vals)
@@ -497,7 +497,7 @@ def test_floor_points_lie_where_the_fluid_rests_on_the_floor(tmp_path):
 
 
 def test_tiny_scene_reconstruction_meets_psnr_and_chamfer(blob, tmp_path):
-    """The issue's first criterion: training PSNR >= 30 dB, both Chamfer directions < 1 true
+    """The reconstruction's first target: training PSNR >= 30 dB, both Chamfer directions < 1 true
     particle spacing at every frame, on CPU in well under 3 minutes."""
     run = tmp_path / "run"
     m = reconstruct(load_dataset(blob), run, small_config(), test_dataset=load_dataset(blob, split="test"), log=quiet)
@@ -515,7 +515,7 @@ def test_tiny_scene_reconstruction_meets_psnr_and_chamfer(blob, tmp_path):
     assert en[-1]["potential"] < en[0]["potential"] and en[-1]["gt_potential"] < en[0]["gt_potential"]
     assert pv["emd_mean"] < pv["emd_floor"] + 1.0
     assert r["particle_stats"]["count"] == r["particles"] and 0 < r["particle_stats"]["opacity"]["median"] <= 1
-    # the files: metrics.jsonl has the issue's fields, recon.h5 reads back with its decoder
+    # the files: metrics.jsonl has the logged fields, recon.h5 reads back with its decoder
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert {1, 2, 3} <= {x["phase"] for x in lines}
     for key in ("wall_s", "iteration", "phase", "terms", "weights", "train_psnr", "particles"):

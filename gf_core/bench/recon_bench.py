@@ -59,7 +59,7 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
         for it in iterations:
             for t, tr_ds, te_ds in clips:
                 base = make_config(preset, config_file)
-                over = {"phases": {"iterations": it},
+                over = {"phases": {"iterations": it, "limit_factor": 1.0},  # the budget swept, exactly
                         "model": {"max_particles": n, "init_particles": min(n, base.model.init_particles)}}
                 if time_budget > 0:
                     over["train"] = {"time_budget_s": float(time_budget) / len(clips)}
