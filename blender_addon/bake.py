@@ -38,15 +38,16 @@ def frame_samples(frame_start: int, frame_end: int, substeps: int) -> list:
 
 def bake_usd(anim, path: str, frames: list, times_s: list, *, fps: float, radius_scale: float,
              velocity: bool = True) -> str:
-    """Time codes = scene frames (``fps`` per second); positions, radii and velocities of the
-    reconstruction at ``times_s``."""
+    """Time codes = scene frames (``fps`` per second); positions, radii, velocities, base colours
+    and opacities of the reconstruction at ``times_s``."""
     if len(frames) != len(times_s) or not frames:
         raise ValueError("need one time per frame, at least one frame")
 
     def samples():
         for f, t in zip(frames, times_s):
             res = anim.at(t, velocity=velocity, warn=False)
-            yield f, res["positions"], radius_scale * np.exp(res["log_scales"].mean(1)), res.get("velocities")
+            yield f, res["positions"], radius_scale * np.exp(res["log_scales"].mean(1)), res.get("velocities"), \
+                res["colors"], res["opacities"]
 
     return caches.write_usd_points(path, samples(), fps=fps, start=frames[0], end=frames[-1],
                                    metadata={"source": os.path.basename(anim.source or "")},

@@ -27,6 +27,10 @@ def register(sub):
                    help="output file (ply with --time, usd) or folder (default: RUN/export/...)")
     p.add_argument("--radius-scale", type=float, default=1.0,
                    help="particle radius = this x the geometric mean of its Gaussian scales (default 1)")
+    p.add_argument("--sh-degree", type=int, default=3, choices=[0, 1, 2, 3],
+                   help="ply: spherical-harmonic degree written (default 3, what the reference 3DGS reader and "
+                        "most splat viewers expect: coefficients above the reconstruction's degree are zero; a "
+                        "lower degree drops the view-dependent colour above it)")
     p.add_argument("--voxel", type=float, default=None, help="vdb voxel size in metres (default: half the median radius)")
     p.set_defaults(func=run)
 
@@ -70,7 +74,7 @@ def run(args) -> int:
         out = args.out or base / f"gaussians_t{t:.4f}.ply"
         if out.exists() and out.is_dir():
             raise InputError(out, "--out for a single PLY must be a file path, and this is a folder")
-        ex.export_ply(anim, t, out)
+        ex.export_ply(anim, t, out, sh_degree=args.sh_degree)
         print(f"wrote {out} ({anim.num_particles} Gaussians at t = {t:g} s)")
         return 0
     times = ex.export_times(recon, frames=frames, fps=args.fps)
@@ -78,8 +82,7 @@ def run(args) -> int:
         out = args.out or base / "particles.usdc"
         if out.suffix not in (".usd", ".usdc", ".usda"):
             raise InputError(out, "--out for usd must end in .usd, .usdc or .usda")
-        fps = args.fps or (recon.config or {}).get("fps") or (
-            (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else 30.0)
+        fps = args.fps or ex.sample_rate(times, (recon.config or {}).get("fps"), where=recon_path)
         ex.export_usd(anim, times, out, fps=fps, radius_scale=args.radius_scale)
         print(f"wrote {out} ({len(times)} time samples at {fps:g} per second, {anim.num_particles} points)")
         return 0
@@ -87,7 +90,8 @@ def run(args) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(out, f"--out for {fmt} is a folder (one file per frame), and this is a file")
     if fmt == "ply":
-        files = [ex.export_ply(anim, t, out / f"gaussians_{k:05d}.ply") for k, t in enumerate(times)]
+        files = [ex.export_ply(anim, t, out / f"gaussians_{k:05d}.ply", sh_degree=args.sh_degree)
+                 for k, t in enumerate(times)]
     elif fmt == "particles":
         files = ex.export_particles(anim, times, out, radius_scale=args.radius_scale)
     else:

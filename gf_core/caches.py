@@ -59,13 +59,16 @@ def _tmp_for(path) -> str:
 
 def write_usd_points(path, samples, *, fps: float, start: float, end: float, metadata: dict | None = None,
                      extra_paths=()) -> str:
-    """UsdGeom.Points at /gaussfluids/particles (default prim /gaussfluids), time-sampled.
+    """UsdGeom.Points at /gaussfluids/particles (default prim /gaussfluids, kind component),
+    time-sampled.
 
-    ``samples``: iterable of (time code, positions (N, 3), radii (N,), velocities (N, 3) or None);
-    ``fps`` time codes per second; ``start``/``end`` the stage's time range. Widths are 2 x radii;
-    up axis z, 1 metre per unit (Blender's conventions)."""
+    ``samples``: iterable of (time code, positions (N, 3), radii (N,), velocities (N, 3) or None,
+    and optionally colours (N, 3) in [0, 1] and opacities (N,)); ``fps`` time codes per second;
+    ``start``/``end`` the stage's time range. Widths are 2 x radii; colours and opacities become
+    the ``displayColor`` / ``displayOpacity`` primvars per point (what Houdini, Omniverse and
+    usdview show); up axis z, 1 metre per unit (Blender's conventions)."""
     bundled_module("pxr", extra_paths)
-    from pxr import Usd, UsdGeom, Vt
+    from pxr import Kind, Usd, UsdGeom, Vt
 
     path = str(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -81,12 +84,13 @@ def write_usd_points(path, samples, *, fps: float, start: float, end: float, met
     stage.SetEndTimeCode(float(end))
     root = UsdGeom.Xform.Define(stage, "/gaussfluids")
     stage.SetDefaultPrim(root.GetPrim())
+    Usd.ModelAPI(root.GetPrim()).SetKind(Kind.Tokens.component)
     pts = UsdGeom.Points.Define(stage, "/gaussfluids/particles")
     pa, wa, ext = pts.CreatePointsAttr(), pts.CreateWidthsAttr(), pts.CreateExtentAttr()
-    va = None
+    va = ca = oa = None
     pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
     n_samples = 0
-    for code, p, r, v in samples:
+    for code, p, r, v, *look in samples:
         p = np.ascontiguousarray(p, np.float32)
         r = np.ascontiguousarray(r, np.float32)
         tc = Usd.TimeCode(float(code))
@@ -95,6 +99,13 @@ def write_usd_points(path, samples, *, fps: float, start: float, end: float, met
         if v is not None:
             va = va or pts.CreateVelocitiesAttr()
             va.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v, np.float32)), tc)
+        if look:
+            col, opa = look
+            if ca is None:
+                ca = pts.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
+                oa = pts.CreateDisplayOpacityPrimvar(UsdGeom.Tokens.vertex)
+            ca.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(np.clip(col, 0, 1), np.float32)), tc)
+            oa.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(np.clip(opa, 0, 1), np.float32)), tc)
         if len(p):
             ext.Set(Vt.Vec3fArray.FromNumpy(np.stack([(p - r[:, None]).min(0), (p + r[:, None]).max(0)])), tc)
         n_samples += 1
@@ -167,6 +178,7 @@ def write_vdb_density(path, dense: np.ndarray, lo, voxel: float, *, name: str = 
     grid = vdb.FloatGrid()
     grid.copyFromArray(np.ascontiguousarray(dense, np.float32), ijk=(0, 0, 0), tolerance=0.0)
     grid.name = name
+    grid.gridClass = vdb.GridClass.FOG_VOLUME  # a density in [0, ...), zero outside: what renderers shade as a volume
     m = np.eye(4)
     m[0, 0] = m[1, 1] = m[2, 2] = voxel
     m[3, :3] = np.asarray(lo, np.float64) + 0.5 * voxel  # row-vector matrices: translation in the last row

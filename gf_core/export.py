@@ -4,10 +4,14 @@
   3DGS viewers read: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3, with the
   activations 3DGS expects: logit opacity, log scales, quaternion w x y z, SH coefficients with
   f_rest channel-major). Grayscale reconstructions are written with their channel in all three.
+  The SH are written at degree 3 by default (``sh_degree``), higher coefficients zero: the
+  reference 3DGS reader (``GaussianModel.load_ply``) and most viewers expect exactly 45 f_rest
+  properties and refuse or misread others; a lower degree drops the coefficients above it.
 - ``particles``: per frame a PLY of points: x y z vx vy vz radius opacity (velocities from the
   decoder's time derivative, m/s).
-- ``vdb``: per frame an OpenVDB float grid ``density`` (``gf_core.caches``).
-- ``usd``: one USD file of points with time samples (``gf_core.caches``).
+- ``vdb``: per frame an OpenVDB float grid ``density``, class fog volume (``gf_core.caches``).
+- ``usd``: one USD file of points with time samples: positions, widths, velocities, and the
+  base colour and opacity of every point as ``displayColor`` / ``displayOpacity`` (``gf_core.caches``).
 
 Times: by default the reconstruction's training frames (``frame_times_s`` in recon.h5), else a
 grid at ``fps`` over the clip; ``--fps`` resamples the clip (the decoder is continuous).
@@ -89,10 +93,20 @@ def read_ply(path) -> dict:
 
 
 # ---- 3DGS layout --------------------------------------------------------------------------------
-def gaussians_to_ply_columns(means, log_scales, quats, logit_opacity, sh) -> dict:
+SH_DEGREES = (0, 1, 2, 3)
+
+
+def gaussians_to_ply_columns(means, log_scales, quats, logit_opacity, sh, *, sh_degree: int | None = 3) -> dict:
+    """3DGS PLY columns; ``sh`` (N, K, 1 or 3) written at ``sh_degree`` (zeros above the model's
+    degree, coefficients above ``sh_degree`` dropped; None = the model's own degree)."""
     n, k, c = sh.shape
     if c == 1:  # grayscale: the same coefficients in R, G and B
         sh = np.repeat(sh, 3, axis=2)
+    if sh_degree is not None:
+        if sh_degree not in SH_DEGREES:
+            raise InputError("--sh-degree", f"must be one of {', '.join(map(str, SH_DEGREES))}, got {sh_degree}")
+        want = (sh_degree + 1) ** 2
+        sh = np.concatenate([sh[:, :want], np.zeros((n, max(want - k, 0), 3), sh.dtype)], 1)
     cols = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2],
             "nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n)}
     for ch in range(3):
@@ -154,11 +168,25 @@ def export_times(recon, *, frames: slice | None = None, fps: float | None = None
     return sel
 
 
+def sample_rate(times, fps: float | None = None, *, where="reconstruction") -> float:
+    """Samples per second of evenly spaced ``times`` (the k-th time is time code k of a USD
+    cache, so this is its timeCodesPerSecond and playback runs in real time); one time: ``fps``,
+    else 30. Unevenly spaced times have no one rate: a clear error asking for --fps."""
+    t = np.asarray(times, np.float64)
+    if len(t) < 2:
+        return float(fps or 30.0)
+    dt = np.diff(t)
+    if not dt.min() > 0 or dt.max() > 1.01 * dt.min():
+        raise InputError(where, f"its {len(t)} frame times are not evenly spaced ({dt.min():.4g} to {dt.max():.4g} s "
+                                "apart), so they have no one frame rate; give --fps to resample the clip evenly")
+    return round(float(1.0 / dt.mean()), 6)
+
+
 # ---- the exports ----------------------------------------------------------------------------------
-def export_ply(anim: ParticleAnimation, t: float, path) -> Path:
+def export_ply(anim: ParticleAnimation, t: float, path, *, sh_degree: int | None = 3) -> Path:
     g = anim.at(t, warn=True)
     return write_ply(path, gaussians_to_ply_columns(g["positions"], g["log_scales"], g["quats"],
-                                                    g["logit_opacity"], g["sh"]))
+                                                    g["logit_opacity"], g["sh"], sh_degree=sh_degree))
 
 
 def particle_radii(log_scales, radius_scale: float = 1.0):
@@ -198,11 +226,12 @@ def export_usd(anim: ParticleAnimation, times, path, *, fps: float, radius_scale
     def samples():
         for k, t in enumerate(times):
             g = anim.at(t, velocity=True, warn=True)
-            yield k, g["positions"], particle_radii(g["log_scales"], radius_scale), g["velocities"]
+            yield k, g["positions"], particle_radii(g["log_scales"], radius_scale), g["velocities"], \
+                g["colors"], g["opacities"]
 
     return Path(write_usd_points(path, samples(), fps=fps, start=0, end=len(times) - 1,
                                  metadata={"times_s": [float(t) for t in times]}))
 
 
-__all__ = ["FORMATS", "write_ply", "read_ply", "gaussians_to_ply_columns", "ply_columns_to_gaussians",
-           "export_times", "export_ply", "export_particles", "export_vdb", "export_usd", "particle_radii"]
+__all__ = ["FORMATS", "SH_DEGREES", "write_ply", "read_ply", "gaussians_to_ply_columns", "ply_columns_to_gaussians",
+           "export_times", "sample_rate", "export_ply", "export_particles", "export_vdb", "export_usd", "particle_radii"]

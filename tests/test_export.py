@@ -10,7 +10,7 @@ import torch
 from gf_core import export as ex
 from gf_core.camera import Camera
 from gf_core.decoder_np import ParticleAnimation
-from gf_core.errors import FormatError
+from gf_core.errors import FormatError, InputError
 from gf_core.io import ReconData, read_recon, write_recon
 from gf_core.render import render
 from gf_core.temporal import Decoder, DecoderConfig
@@ -47,7 +47,8 @@ def test_ply_reads_back_identical_and_renders_the_same_image(recon_file, tmp_pat
     path = ex.export_ply(anim, t, tmp_path / "g.ply")
     cols = ex.read_ply(path)
     assert list(cols)[:6] == ["x", "y", "z", "nx", "ny", "nz"]
-    assert [k for k in cols if k.startswith("f_rest_")] == [f"f_rest_{j}" for j in range(9)]
+    # degree 3 by default (the reconstruction's is 1): 45 f_rest properties, the higher ones zero
+    assert [k for k in cols if k.startswith("f_rest_")] == [f"f_rest_{j}" for j in range(45)]
     assert list(cols)[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     g = ex.ply_columns_to_gaussians(cols)
     at = anim.at(t)
@@ -55,7 +56,12 @@ def test_ply_reads_back_identical_and_renders_the_same_image(recon_file, tmp_pat
     np.testing.assert_array_equal(g["log_scales"], at["log_scales"])
     np.testing.assert_array_equal(g["quats"], at["quats"])
     np.testing.assert_array_equal(g["logit_opacity"], r.logit_opacity)
-    np.testing.assert_array_equal(g["sh"], r.sh)
+    assert g["sh"].shape == (r.num_particles, 16, 3)
+    np.testing.assert_array_equal(g["sh"][:, :4], r.sh)
+    assert not g["sh"][:, 4:].any()
+    # the model's own degree on request
+    own = ex.ply_columns_to_gaussians(ex.read_ply(ex.export_ply(anim, t, tmp_path / "g1.ply", sh_degree=None)))
+    np.testing.assert_array_equal(own["sh"], r.sh)
     # as Gaussians in the renderer: the image of the reconstruction at t (torch decoder)
     from gf_core.model import FluidModel
 
@@ -68,6 +74,51 @@ def test_ply_reads_back_identical_and_renders_the_same_image(recon_file, tmp_pat
                  t_["sh"], cam).color
     assert ref.abs().max() > 0.1
     torch.testing.assert_close(img, ref, atol=1e-4, rtol=0)
+
+
+def reference_3dgs_load_ply(path, max_sh_degree=3):
+    """The parsing of the reference 3DGS reader (graphdeco-inria gaussian-splatting,
+    ``GaussianModel.load_ply``), with numpy in place of plyfile: the f_rest properties sorted by
+    their index must number exactly 3 x (max_sh_degree + 1)^2 - 3, and are read channel-major."""
+    el = ex.read_ply(path)
+    xyz = np.stack([el["x"], el["y"], el["z"]], 1)
+    opacities = el["opacity"][:, None]
+    dc = np.stack([el["f_dc_0"], el["f_dc_1"], el["f_dc_2"]], 1)[:, :, None]
+    extra = sorted((k for k in el if k.startswith("f_rest_")), key=lambda x: int(x.split("_")[-1]))
+    assert len(extra) == 3 * (max_sh_degree + 1) ** 2 - 3
+    rest = np.zeros((len(xyz), len(extra)))
+    for idx, k in enumerate(extra):
+        rest[:, idx] = el[k]
+    rest = rest.reshape(len(xyz), 3, (max_sh_degree + 1) ** 2 - 1)
+    scales = np.stack([el[k] for k in sorted((k for k in el if k.startswith("scale_")), key=lambda x: int(x.split("_")[-1]))], 1)
+    rots = np.stack([el[k] for k in sorted((k for k in el if k.startswith("rot")), key=lambda x: int(x.split("_")[-1]))], 1)
+    # (N, 3, K) as the reference keeps them: features_dc (N, 1, 3) and features_rest (N, K - 1, 3) after transposes
+    return {"xyz": xyz, "opacity": opacities, "features_dc": np.transpose(dc, (0, 2, 1)),
+            "features_rest": np.transpose(rest, (0, 2, 1)), "scaling": scales, "rotation": rots}
+
+
+def test_the_default_ply_loads_in_the_reference_3dgs_reader(recon_file, tmp_path):
+    """The reference reader's default (sh_degree 3) loads the default export; every coefficient of
+    the degree-1 reconstruction lands where the reader's renderer evaluates it, the rest zero.
+    The reconstruction's own degree (9 f_rest) is refused by that reader, as it would be."""
+    r = read_recon(recon_file)
+    anim = ParticleAnimation(r)
+    at = anim.at(0.1)
+    ref = reference_3dgs_load_ply(ex.export_ply(anim, 0.1, tmp_path / "g.ply"))
+    np.testing.assert_array_equal(ref["xyz"], at["positions"])
+    np.testing.assert_array_equal(ref["features_dc"][:, 0], at["sh"][:, 0])
+    np.testing.assert_array_equal(ref["features_rest"][:, :3], at["sh"][:, 1:4])
+    assert ref["features_rest"].shape == (r.num_particles, 15, 3) and not ref["features_rest"][:, 3:].any()
+    np.testing.assert_array_equal(ref["scaling"], at["log_scales"])
+    np.testing.assert_array_equal(ref["rotation"], at["quats"])
+    np.testing.assert_array_equal(ref["opacity"][:, 0], at["logit_opacity"])
+    with pytest.raises(AssertionError):
+        reference_3dgs_load_ply(ex.export_ply(anim, 0.1, tmp_path / "own.ply", sh_degree=None))
+    # degree 0 drops the view-dependent terms: no f_rest at all
+    zero = reference_3dgs_load_ply(ex.export_ply(anim, 0.1, tmp_path / "g0.ply", sh_degree=0), max_sh_degree=0)
+    np.testing.assert_array_equal(zero["features_dc"][:, 0], at["sh"][:, 0])
+    with pytest.raises(InputError, match="--sh-degree"):
+        ex.export_ply(anim, 0.1, tmp_path / "g4.ply", sh_degree=4)
 
 
 def test_ply_reader_refuses_bad_files(tmp_path):
@@ -124,6 +175,51 @@ def test_usd_reads_back_identical_positions(recon_file, tmp_path):
         # float32 in the file; 1e-6 m allows only the last bit of a second evaluation (numpy's
         # matrix products need not repeat bit for bit between calls), not a lossy conversion
         np.testing.assert_allclose(read_usd_points(path, k), anim.at(t)["positions"], rtol=0, atol=1e-6)
+
+
+@needs_bpy
+def test_usd_points_carry_colour_opacity_kind_and_the_real_frame_rate(recon_file, tmp_path):
+    """What DCC tools read besides positions: displayColor / displayOpacity per point (else grey
+    points), kind = component on the default prim, and time codes per second such that the cache
+    plays in real time (the exported frames 0.1 s apart: 10; every other one: 5)."""
+    from gf_cli.main import main
+    from gf_core.caches import bundled_module
+
+    bundled_module("pxr")
+    from pxr import Usd, UsdGeom
+
+    r = read_recon(recon_file)
+    anim = ParticleAnimation(r)
+    out = tmp_path / "p.usda"
+    assert main(["export", str(recon_file), "--format", "usd", "--out", str(out)]) == 0
+    stage = Usd.Stage.Open(str(out))
+    assert Usd.ModelAPI(stage.GetDefaultPrim()).GetKind() == "component"
+    assert stage.GetTimeCodesPerSecond() == pytest.approx(10.0)
+    pts = UsdGeom.Points(stage.GetPrimAtPath("/gaussfluids/particles"))
+    api = UsdGeom.PrimvarsAPI(pts)
+    col, opa = api.GetPrimvar("displayColor"), api.GetPrimvar("displayOpacity")
+    assert col.GetInterpolation() == "vertex" and opa.GetInterpolation() == "vertex"
+    for k, t in enumerate(TIMES):
+        at = anim.at(t)
+        np.testing.assert_allclose(np.asarray(col.Get(k)), np.clip(at["colors"], 0, 1), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(opa.Get(k)), at["opacities"], atol=1e-6)
+    assert at["colors"].std() > 0.05  # not one grey
+    assert main(["export", str(recon_file), "--format", "usd", "--frames", "::2", "--out", str(tmp_path / "h.usda")]) == 0
+    assert Usd.Stage.Open(str(tmp_path / "h.usda")).GetTimeCodesPerSecond() == pytest.approx(5.0)
+    # unevenly spaced frames have no one rate: asked for --fps
+    with pytest.raises(InputError, match="--fps"):
+        ex.sample_rate([0.0, 0.1, 0.3], where="r.h5")
+    assert ex.sample_rate([0.5]) == 30.0 and ex.sample_rate([0.5], 24.0) == 24.0
+
+
+@needs_bpy
+def test_vdb_density_is_a_fog_volume(recon_file, tmp_path):
+    from gf_core.caches import bundled_module
+
+    vdb = bundled_module("openvdb")
+    files = ex.export_vdb(ParticleAnimation(read_recon(recon_file)), [0.1], tmp_path, voxel=0.02)
+    grid = vdb.read(str(files[0]), "density")
+    assert grid.gridClass == vdb.GridClass.FOG_VOLUME == "fog volume"
 
 
 @needs_bpy
