@@ -48,7 +48,7 @@ def scene_time(settings, frame: float) -> float:
 
 def create_point_cloud(name: str, n: int, collection):
     """A point-cloud object with ``n`` points: ``PointCloud.resize`` where Blender has it, else a
-    vertex mesh converted to a point cloud (Blender 4.2 - 5.0)."""
+    vertex mesh converted to a point cloud (Blender 4.5 - 5.0; the convert target "POINTCLOUD" is not in 4.2 - 4.4)."""
     if hasattr(bpy.types.PointCloud, "resize"):
         pc = bpy.data.pointclouds.new(name)
         pc.resize(n)

@@ -2,9 +2,10 @@
 
 The zip holds blender_addon/ (manifest, operators, panel, handlers), the toolkit's torch-free
 modules it shares with the rest of the toolkit (gf_core: errors, io, decoder_np, caches; render_data:
-scene_builder, render_dataset -- one implementation, copied at build time), and h5py wheels
-(CPython 3.11, as every Blender >= 4.2) for each platform asked for, downloaded from PyPI into a
-cache once. Blender installs the wheel that matches the machine.
+scene_builder, render_dataset -- one implementation, copied at build time), and h5py wheels for
+each platform asked for and each Python Blender ships (CPython 3.11: Blender 4.5 - 5.0; 3.13:
+5.1 on), downloaded from PyPI into a cache once. Blender installs the wheel that matches the
+machine and its Python.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import zipfile
 from pathlib import Path
 
 H5PY_VERSION = "3.16.0"
-PYTHON_VERSION = "3.11"  # Blender 4.2 - 5.0
+PYTHONS = ("311", "313")  # CPython tags of Blender's Python: 3.11 in Blender 4.5 - 5.0, 3.13 from 5.1
 # Blender's platform names -> pip platform tags that h5py publishes wheels under
 PLATFORMS = {
     "linux-x64": ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_28_x86_64"],
@@ -32,7 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def register(sub):
     p = sub.add_parser("addon", help="build the Blender extension zip",
-                       description="Blender extension (Blender >= 4.2). `gf-cli addon build` writes the zip to "
+                       description="Blender extension (Blender >= 4.5). `gf-cli addon build` writes the zip to "
                                    "install with Edit > Preferences > Get Extensions > Install from Disk.")
     asub = p.add_subparsers(dest="addon_command", metavar="ACTION")
     asub.required = True
@@ -61,33 +62,35 @@ def _wheel_platforms(name: str) -> set:
     return set(name[:-4].split("-")[-1].split("."))
 
 
-def find_wheel(cache: Path, platform: str) -> Path | None:
+def find_wheel(cache: Path, platform: str, python: str = "311") -> Path | None:
     tags = set(PLATFORMS[platform])
-    for w in sorted(cache.glob(f"h5py-{H5PY_VERSION}-cp311-cp311-*.whl")):
+    for w in sorted(cache.glob(f"h5py-{H5PY_VERSION}-cp{python}-cp{python}-*.whl")):
         if _wheel_platforms(w.name) & tags:
             return w
     return None
 
 
-def fetch_wheel(cache: Path, platform: str) -> Path:
-    """The h5py wheel for ``platform``, from the cache or downloaded from PyPI with pip."""
+def fetch_wheel(cache: Path, platform: str, python: str = "311") -> Path:
+    """The h5py wheel for ``platform`` and CPython ``python`` ("311"), from the cache or
+    downloaded from PyPI with pip."""
     from gf_core.errors import GFError
 
-    w = find_wheel(cache, platform)
+    w = find_wheel(cache, platform, python)
     if w is not None:
         return w
     cache.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "pip", "download", f"h5py=={H5PY_VERSION}", "--only-binary=:all:", "--no-deps",
-           "--python-version", PYTHON_VERSION, "--implementation", "cp", "--abi", "cp311", "-d", str(cache),
+           "--python-version", f"{python[0]}.{python[1:]}", "--implementation", "cp", "--abi", f"cp{python}",
+           "-d", str(cache),
            "--disable-pip-version-check", "--quiet"]
     for tag in PLATFORMS[platform]:
         cmd += ["--platform", tag]
     r = subprocess.run(cmd, capture_output=True, text=True)
-    w = find_wheel(cache, platform)
+    w = find_wheel(cache, platform, python)
     if r.returncode != 0 or w is None:
         tail = (r.stderr or r.stdout).strip().splitlines()[-3:]
-        raise GFError(f"could not download the h5py {H5PY_VERSION} wheel for {platform} from PyPI into {cache} "
-                      f"(offline?). pip said: {' | '.join(tail) or 'nothing'}. Run once with network access, put the "
+        raise GFError(f"could not download the h5py {H5PY_VERSION} wheel for {platform}, CPython {python}, from PyPI "
+                      f"into {cache} (offline?). pip said: {' | '.join(tail) or 'nothing'}. Run once with network access, put the "
                       f"wheel into {cache} by hand, or leave that platform out with --platforms.")
     return w
 
@@ -108,7 +111,7 @@ def build(out: Path, platforms: list[str], cache: Path) -> Path:
     """Write the zip; returns its path. Fails before writing anything if a wheel is missing."""
     from gf_core.io import atomic_path
 
-    wheels = [fetch_wheel(cache, p) for p in platforms]
+    wheels = [fetch_wheel(cache, p, py) for p in platforms for py in PYTHONS]
     out = Path(out)
     target = out if out.suffix == ".zip" else out / f"gaussfluids-{addon_version()}.zip"
     files = {}
@@ -136,6 +139,7 @@ def run_build(args) -> int:
     cache = args.wheel_cache or Path(os.environ.get("GF_WHEEL_CACHE", Path.home() / ".cache" / "gaussfluids" / "wheels"))
     path = build(args.out, platforms, cache)
     size = path.stat().st_size / 1e6
-    print(f"wrote {path} ({size:.1f} MB; h5py {H5PY_VERSION} for {', '.join(platforms)})")
+    print(f"wrote {path} ({size:.1f} MB; h5py {H5PY_VERSION} for {', '.join(platforms)}, "
+          f"CPython {' and '.join(p[0] + '.' + p[1:] for p in PYTHONS)})")
     print("install: Blender > Edit > Preferences > Get Extensions > (menu) Install from Disk...")
     return 0

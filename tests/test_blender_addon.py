@@ -122,14 +122,26 @@ def test_zip_is_an_extension_for_four_platforms(addon_zip):
         names = z.namelist()
         man = tomllib.loads(z.read("blender_manifest.toml").decode())
         sources = {n: z.read(n).decode() for n in names if n.endswith(".py")}
-    assert man["id"] == "gaussfluids" and man["blender_version_min"] == "4.2.0" and man["type"] == "add-on"
+    assert man["id"] == "gaussfluids" and man["blender_version_min"] == "4.5.0" and man["type"] == "add-on"
     assert set(man["platforms"]) == {"linux-x64", "macos-arm64", "macos-x64", "windows-x64"}
-    assert len(man["wheels"]) == 4 and all(w[2:] in names for w in man["wheels"])
-    assert all("-cp311-" in w for w in man["wheels"])
+    # h5py for each platform and each Python Blender ships (3.11: 4.5 - 5.0; 3.13: 5.1 on)
+    assert len(man["wheels"]) == 8 and all(w[2:] in names for w in man["wheels"])
+    assert sum("-cp311-" in w for w in man["wheels"]) == sum("-cp313-" in w for w in man["wheels"]) == 4
     assert "files" in man["permissions"]
     for name, text in sources.items():
         assert "import torch" not in text and "from torch" not in text, name
     assert {"gf_core/decoder_np.py", "gf_core/io.py", "render_data/scene_builder.py", "__init__.py"} <= set(names)
+
+
+def test_zip_passes_blenders_own_extension_validate(addon_zip):
+    """`blender --command extension validate`, run from the validator the bpy module bundles
+    (e.g. a permission's reason is at most 64 characters)."""
+    import bpy
+
+    ext = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"
+    assert ext.exists(), f"the bpy module bundles no extension validator ({ext})"
+    r = subprocess.run([sys.executable, str(ext), "validate", str(addon_zip)], capture_output=True, text=True)
+    assert r.returncode == 0 and "Success" in r.stdout, r.stdout + r.stderr
 
 
 def test_import_follows_the_decoder_at_frames_and_subframes(session, recon_file):
