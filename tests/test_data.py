@@ -308,3 +308,60 @@ def test_inspect_checks_what_it_claims(tmp_path, rng, capsys):
     capsys.readouterr()
     assert main(["inspect", str(tmp_path / "v")]) == 2
     assert "cam1.mkv" in capsys.readouterr().err
+
+
+# ---- lens distortion (nerfstudio's transforms.json) ----------------------------------------------
+@pytest.mark.parametrize("model, coeffs", [
+    ("OPENCV", {"k1": -0.35, "k2": 0.08, "p1": 0.004, "p2": -0.003}),
+    ("OPENCV_FISHEYE", {"k1": 0.09, "k2": -0.02, "k3": 0.01, "k4": -0.004}),
+])
+def test_distorted_images_load_as_the_pinhole_images_of_their_camera(tmp_path, model, coeffs):
+    """A nerfstudio transforms.json with per-frame intrinsics and a lens model: dots recorded where
+    the lens puts known 3D points land, once loaded, where the pinhole camera projects those points
+    (within 0.15 px), though the lens moved them by up to several pixels."""
+    from gf_core.data.distortion import Distortion, MODELS
+
+    w, h = 96, 72
+    cam = Camera(80.0, 78.0, 50.3, 34.1, w, h,
+                 Camera.look_at([0.3, -2.0, 0.6], [0, 0, 0], [0, 0, 1], fx=80.0, width=w, height=h).world_to_camera)
+    lens = Distortion(model, tuple(coeffs.get(k, 0.0) for k in MODELS[model]))
+    # 3D points whose pinhole projections form a grid, 2 m in front of the camera
+    gu, gv = np.meshgrid(np.linspace(12, w - 12, 5), np.linspace(12, h - 12, 4))
+    uv = np.stack([gu.ravel(), gv.ravel()], 1)
+    rays = np.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy, np.ones(len(uv))], 1)
+    pts = (rays * 2.0 - cam.world_to_camera[:3, 3]) @ cam.world_to_camera[:3, :3]
+    proj, _ = cam.project(pts)
+    np.testing.assert_allclose(proj, uv, atol=1e-9)
+    xd, yd = lens.distort((proj[:, 0] - cam.cx) / cam.fx, (proj[:, 1] - cam.cy) / cam.fy)
+    rec = np.stack([xd * cam.fx + cam.cx, yd * cam.fy + cam.cy], 1)  # where the recording shows them
+    assert np.abs(rec - proj).max() > 2.5
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5  # pixel centres
+    img = sum(np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.3 ** 2)) for u, v in rec)
+    write_png(tmp_path / "r.png", np.repeat(np.clip(img, 0, 1)[..., None], 3, 2))
+    frame = {"file_path": "r.png", "transform_matrix": cam.to_blender_c2w().tolist(), "time": 0.0,
+             "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, "w": w, "h": h}
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_model": model, **coeffs, "frames": [frame]}))
+    s = load_dataset(tmp_path)[0]
+    assert s.camera.allclose(cam, atol=1e-9)
+    got = s.image[..., 0].numpy()
+    for u, v in np.rint(proj).astype(int):  # the intensity centroid of the 6 x 6 pixels centred on each projection
+        win = (slice(v - 3, v + 3), slice(u - 3, u + 3))
+        c = np.array([(got[win] * xx[win]).sum(), (got[win] * yy[win]).sum()]) / got[win].sum()
+        assert np.abs(c - (u, v)).max() < 0.15, (u, v, c)
+
+
+def test_lens_keys_are_checked(tmp_path, rng):
+    cams, imgs = rig(), images(rng)
+    write_png(tmp_path / "r.png", imgs[0, 0])
+    base = {"file_path": "r.png", "transform_matrix": cams[0].to_blender_c2w().tolist(), "time": 0.0, "fl_x": 20.0}
+    for extra, msg in (({"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not supported"),
+                       ({"camera_model": "OPENCV", "k4": 0.1}, "k4 are not coefficients of camera_model OPENCV"),
+                       ({"k1": "big"}, "distortion coefficient k1 must be a finite number"),
+                       ({"camera_model": "PINHOLE", "k1": 0.2}, "has no distortion")):
+        (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": [{**base, **extra}]}))
+        with pytest.raises(InputError, match=msg):
+            load_dataset(tmp_path)
+    # all-zero coefficients and a pinhole model: the images as recorded
+    (tmp_path / "transforms_train.json").write_text(json.dumps(
+        {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": [base]}))
+    assert load_dataset(tmp_path).frames[0].distortion is None

@@ -29,6 +29,7 @@ class FrameRecord:
     file: Path
     frame_index: int | None = None  # None: ``file`` is an image; otherwise a video frame
     mask_file: Path | None = None
+    distortion: "object" = None     # a ``distortion.Distortion`` of the recording lens, removed at load; None: pinhole
 
 
 @dataclass
@@ -158,17 +159,28 @@ class FluidDataset:
         if hit is not None:
             self._cache.move_to_end(key)
             return hit
-        if rec.frame_index is None:
-            img = read_image(rec.file)
-            self._remember(key, img)
-        else:
-            img = self._video(rec.file).read(rec.frame_index)
-            self._remember(key, img)
+        img = read_image(rec.file) if rec.frame_index is None else self._video(rec.file).read(rec.frame_index)
         cam = rec.camera
         if img.shape[0] != cam.height or img.shape[1] != cam.width:
             raise InputError(rec.file, f"image is {img.shape[1]}x{img.shape[0]} but its camera "
                                        f"says {cam.width}x{cam.height}")
+        img = self._undistort(rec, img)
+        self._remember(key, img)
         return img
+
+    def _undistort(self, rec: FrameRecord, img: np.ndarray) -> np.ndarray:
+        """The pinhole image of a recorded one (``gf_core.data.distortion``); one remap table per
+        camera and lens, built once."""
+        if rec.distortion is None:
+            return img
+        from .distortion import undistort, undistort_maps
+
+        cam = rec.camera
+        key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, rec.distortion)
+        maps = self.__dict__.setdefault("_undistort_maps", {})
+        if key not in maps:
+            maps[key] = undistort_maps(cam, rec.distortion)
+        return undistort(img, maps[key])
 
     def _video(self, path: Path):
         """An open reader per video file (a few at a time: each holds a decoder)."""
@@ -227,6 +239,7 @@ class FluidDataset:
         if m.shape[:2] != (rec.camera.height, rec.camera.width):
             raise InputError(rec.mask_file, f"mask is {m.shape[1]}x{m.shape[0]} but its camera says "
                                             f"{rec.camera.width}x{rec.camera.height}")
+        m = self._undistort(rec, m)
         return to_float(m[:, :, -1] if m.shape[2] in (2, 4) else m[:, :, 0])
 
     def __getitem__(self, i: int) -> Sample:

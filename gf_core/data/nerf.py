@@ -2,6 +2,8 @@
 
 transforms_{split}.json (top level, each key may be overridden per frame):
   camera_angle_x | fl_x [fl_y] ; cx, cy (default W/2, H/2) ; w, h (default: the image's size)
+  camera_model, k1 k2 k3 k4 p1 p2 (nerfstudio's lens distortion, OPENCV or OPENCV_FISHEYE):
+  removed when the images are loaded (``distortion``)
   fps (optional): time = frame_index / fps for frames without "time"
   frames: [{file_path, transform_matrix (camera-to-world, OpenGL), time (seconds), view_id?,
             mask_path?, time_s?}]
@@ -23,6 +25,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError, short_repr
 from .dataset import FluidDataset, FrameRecord
+from .distortion import from_keys as distortion_from_keys
 from .images import image_size
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
@@ -195,7 +198,8 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
             view = view_of_pose.setdefault(key, len(view_of_pose) + view_offset)
         mask = path_value(fr, "mask_path", json_path, where)
         mask = resolve_image(root, mask, json_path, "mask") if mask else None
-        records.append(FrameRecord(camera=cam, time=t, view_id=view, file=img, mask_file=mask))
+        records.append(FrameRecord(camera=cam, time=t, view_id=view, file=img, mask_file=mask,
+                                   distortion=distortion_from_keys(merged, json_path, where)))
     if with_s:  # seconds already: no rescaling of a normalised "time"
         meta = {**meta, "time_unit": "seconds", "time_source": "time_s (seconds per frame)"}
     return records, meta

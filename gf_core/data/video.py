@@ -8,7 +8,9 @@ cameras.json:
                 "fl_x" [, "fl_y"] or "camera_angle_x", "cx", "cy" (default W/2, H/2),
                 "w", "h" (optional; checked against the video),
                 "pixel_center": "half" (default: NeRF, centres at +0.5) or "integer" (OpenCV
-                calibration: cx, cy get +0.5)}]}
+                calibration: cx, cy get +0.5),
+                "camera_model", "k1" ... "p2" (optional lens distortion, as in nerfstudio's
+                transforms.json; removed when frames are decoded, ``distortion``)}]}
 Frame k of a video has time start_time + k / fps. Frames are decoded with OpenCV on first use.
 """
 
@@ -21,6 +23,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord
+from .distortion import from_keys as distortion_from_keys
 from .nerf import _background, _num, intrinsics, path_value, read_json, view_id
 
 
@@ -168,8 +171,9 @@ def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = Fa
             raise InputError(video, "video has no frame rate; give 'fps' in " + json_path.name)
         cam = _camera(entry, w, h, json_path, where)
         view = view_id(entry, json_path, where, default=k)
+        dist = distortion_from_keys(entry, json_path, where)
         records.extend(FrameRecord(camera=cam, time=t0 + i / fps, view_id=view, file=video,
-                                   frame_index=i) for i in range(n))
+                                   frame_index=i, distortion=dist) for i in range(n))
     ch = 1 if grayscale else 3
     bg = _background({"background": meta.get("background", 0.0)}, ch, json_path)
     return FluidDataset(frames=records, root=root, channels=ch, background=bg,
