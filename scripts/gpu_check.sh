@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU checks of the CUDA issue in one call, on a machine with an NVIDIA GPU, torch, nvcc
+# The GPU checks in one call, on a machine with an NVIDIA GPU, torch, nvcc
 # and no network: build the native extension with CUDA, run the `gpu` tests (CUDA against the
 # CPU backend), time the renderer (against gsplat 1.5.3 when its wheel is in .whl/) and the
 # K-nearest SPH density, reconstruct a paper-scale dataset and evaluate it; prints one table.

@@ -3,7 +3,7 @@
 Decodes RECON at time T, then optimises that frame's particles alone against the training views
 (L1 + D-SSIM over random backgrounds, Adam at the trainer's phase-1 rates), freeing only the named
 parameter groups, and prints training and held-out PSNR as it goes. Used for BENCHMARKS.md
-("Eighth session"); not part of the toolkit's API.
+("2026-11-27 (CPU benchmark bounds)"); not part of the toolkit's API.
 
     python scripts/refit_frame.py RUN/recon.h5 DATASET 0.6 means,log_scales,quats 400
     groups: means, log_scales, quats, opacity, sh  (or "all")

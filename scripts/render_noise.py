@@ -10,7 +10,7 @@ The ceiling printed holds only for two renders at the same sample count and diff
 then the noise of each is half of the MSE between them, so a noise-free prediction of the images
 (the best any reconstruction can do) scores PSNR(A, B) + 3 dB against either. Renders that share
 a seed share their first samples, so their PSNR overstates how clean either is. Images present in only one of the
-two are reported and skipped. Used for BENCHMARKS.md ("Fifteenth session"); not part of the API.
+two are reported and skipped. Used for BENCHMARKS.md ("2026-12-01 (render noise)"); not part of the API.
 """
 
 from __future__ import annotations

@@ -63,7 +63,7 @@ def test_lattice_interior_at_rest_density(solver):
 
 
 def test_dfsph_hydrostatic_tank_stays_at_rest():
-    """Issue targets: mean density error < 0.1 % and max speed < 1 % of sqrt(gH) after 2 s. The
+    """Targets: mean density error < 0.1 % and max speed < 1 % of sqrt(gH) after 2 s. The
     scene settles for 6 s before t = 0 (``Scene.settle``). Measured over seven settles (seeds
     0-6, run to 5 s; BENCHMARKS.md, "Hydrostatic tank", item 8): density error < 0.01 %, the
     fastest particle at most 0.09-0.50 % over [2, 5] s and at most 0.50 % from 0.8 s on; over the

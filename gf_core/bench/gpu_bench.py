@@ -1,4 +1,4 @@
-"""``gf-cli bench gpu``: the CUDA figures the CUDA issue asks for, on one scene each.
+"""``gf-cli bench gpu``: the CUDA figures the GPU targets ask for, on one scene each.
 
 1. Renderer forward+backward on the ``bench render`` scene (50k particles, 400x400 by default),
    median over repeats with a device synchronise around each, against gsplat's
