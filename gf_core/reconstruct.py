@@ -237,6 +237,56 @@ class Plateau:
         self.history = [tuple(x) for x in st["history"]]
 
 
+# ---- checkpoints -----------------------------------------------------------------------------------------
+_CHECKPOINT_KEYS = {  # key -> the types it may hold (the schema of Trainer.checkpoint_state)
+    "fingerprint": (str,), "config": (dict,), "bounds": (dict,), "params": (dict,), "mlp": (dict, type(None)),
+    "optimizer": (dict,), "plateau": (dict,), "iteration": (int,), "phase": (int,), "phase_it": (int,),
+    "elapsed": (int, float), "spacing": (int, float), "h": (int, float), "volume": (int, float),
+    "box_source": (str,), "init_source": (str,), "rng_torch": (torch.Tensor,), "rng_numpy": (str,)}
+_CHECKPOINT_OPTIONAL = {"phase_t0": (int, float), "total_bad_steps": (int,), "frame_err": (list,),
+                        "phase_ends": (list,), "time_map": (list,)}
+_CHECKPOINT_PARAMS = ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest")
+
+
+def check_checkpoint(st: dict, path) -> None:
+    """The checkpoint's keys, types and per-particle tensors, one line naming the key otherwise."""
+    def bad(what):
+        raise InputError(path, f"damaged checkpoint: {what}; use --force to start afresh")
+
+    for k, types in (*_CHECKPOINT_KEYS.items(), *_CHECKPOINT_OPTIONAL.items()):
+        if k not in st:
+            if k in _CHECKPOINT_OPTIONAL:
+                continue
+            bad(f"no {k!r}")
+        v = st[k]
+        if isinstance(v, bool) or not isinstance(v, types):
+            bad(f"{k!r} is {type(v).__name__}, expected {' or '.join(t.__name__ for t in types)}")
+        if isinstance(v, float) and not math.isfinite(v):
+            bad(f"{k!r} is {v}")
+    for k in ("frame_err", "time_map"):
+        if k in st and not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                               for x in st[k]):
+            bad(f"{k!r} holds something other than finite numbers")
+    if not 1 <= st["phase"] <= 4 or st["iteration"] < 0 or st["phase_it"] < 0:
+        bad(f"phase {st['phase']}, iteration {st['iteration']}, phase_it {st['phase_it']} out of range")
+    params = st["params"]
+    missing = [k for k in _CHECKPOINT_PARAMS if k not in params]
+    if missing:
+        bad(f"no per-particle {', '.join(missing)}")
+    n = None
+    for k, v in params.items():
+        if not isinstance(v, torch.Tensor) or v.ndim < 1:
+            bad(f"params.{k} is not a per-particle tensor")
+        if n is None:
+            n = v.shape[0]
+        if v.shape[0] != n:
+            bad(f"params.{k} has {v.shape[0]} rows, params.{next(iter(params))} {n}")
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            bad(f"params.{k} has non-finite values")
+    if st["mlp"] is not None and not all(isinstance(v, torch.Tensor) for v in st["mlp"].values()):
+        bad("mlp holds something other than tensors")
+
+
 # ---- the trainer -------------------------------------------------------------------------------------
 class Trainer:
     def __init__(self, cfg: ReconConfig, train_ds, *, test_ds=None, out: Path, device="cpu", log=print,
@@ -377,7 +427,7 @@ class Trainer:
 
     def phase_limit(self, phase: int) -> int:
         """Without a time budget: the iteration at which ``phase`` ends even if its loss still improves."""
-        return max(1, int(round(self.cfg.phases.limit_factor * self.phase_cap(phase))))
+        return int(round(self.cfg.phases.limit_factor * self.phase_cap(phase)))
 
     def ramp_len(self, phase: int) -> int:
         return max(1, int(self.cfg.phases.min_fraction * self.phase_cap(phase)))
@@ -838,6 +888,17 @@ class Trainer:
             raise InputError(path, f"cannot read the checkpoint ({type(e).__name__}: {e})") from None
         if not isinstance(st, dict) or st.get("format") != CHECKPOINT_FORMAT:
             raise InputError(path, "not a GaussFluids checkpoint")
+        check_checkpoint(st, path)
+        try:
+            self._load_state(st, path)
+        except GFError:
+            raise
+        except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as e:
+            # what the schema check cannot see (an optimiser state or a layer of the wrong size)
+            raise InputError(path, f"damaged checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:200]}); "
+                                   "use --force to start afresh") from None
+
+    def _load_state(self, st: dict, path: Path) -> None:
         if st["fingerprint"] != self.fingerprint:
             raise ReconstructionError(f"{path}: the checkpoint was made from other images than the dataset given "
                                       "(files, times or cameras differ); use --force to start afresh")

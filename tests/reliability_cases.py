@@ -53,8 +53,13 @@ def make_base(root: Path) -> dict:
         "train": {"eval_every": 30, "checkpoint_every": 30}})
     reconstruct(load_dataset(ds), root / "run", cfg, log=lambda *a, **k: None)
     (root / "config.toml").write_text(TINY_TOML)
+    # a run made by the command itself, whose checkpoint `reconstruct --resume` with the same config reads
+    from gf_cli.main import main
+
+    if main(["reconstruct", str(ds), "--out", str(root / "ckrun"), "--config", str(root / "config.toml"), "--quiet"]):
+        raise RuntimeError("the base run for the checkpoint cases failed")
     return {"root": root, "sim": root / "sim.h5", "ds": ds, "run": root / "run", "recon": root / "run" / "recon.h5",
-            "toml": root / "config.toml"}
+            "toml": root / "config.toml", "ckrun": root / "ckrun"}
 
 
 TINY_TOML = """[model]
@@ -297,6 +302,21 @@ def cases(base: dict) -> list[Case]:
             return cmd(run, tmp)
         out.append(Case(f"recon:truncated:{cmd(Path('r'), Path('t'))[0]}", make, must_refuse=True, tags=["recon"]))
 
+    # the checkpoint that `reconstruct --resume` reads: every key, and every per-particle tensor
+    for name, change in checkpoint_variants(base["ckrun"] / "checkpoint.pt"):
+        def make(tmp, change=change):
+            import torch
+
+            run = tmp / "ckrun"
+            shutil.copytree(base["ckrun"], run)
+            ck = run / "checkpoint.pt"
+            st = torch.load(ck, map_location="cpu", weights_only=True)
+            change(st)
+            torch.save(st, ck)
+            return ["reconstruct", str(base["ds"]), "--out", str(run), "--config", str(base["toml"]), "--resume",
+                    "--quiet"]
+        out.append(Case(f"checkpoint:{name}", make, tags=["checkpoint"]))
+
     # reconstruct --config: every key of the water preset
     for name, text in toml_variants():
         def make(tmp, text=text):
@@ -311,6 +331,38 @@ def cases(base: dict) -> list[Case]:
         def make(tmp, argv=argv):
             return [a.format(tmp=tmp, ds=base["ds"], run=base["run"], sim=base["sim"]) for a in argv]
         out.append(Case("option:" + " ".join(argv[:1] + argv[2:]), make, must_refuse=True, tags=["option"]))
+    return out
+
+
+def checkpoint_variants(path: Path):
+    """(name, function that changes a loaded checkpoint dict in place) for every top-level key
+    (missing, a string, None, NaN) and every per-particle tensor (a row short, NaN, a string)."""
+    import torch
+
+    st = torch.load(path, map_location="cpu", weights_only=True)
+    out = []
+    for key in st:
+        if key == "format":
+            continue
+        for how, value in (("missing", None), ("string", "x"), ("null", "__null__"), ("nan", float("nan"))):
+            def change(d, key=key, value=value):
+                if value is None:
+                    del d[key]
+                else:
+                    d[key] = None if value == "__null__" else value
+            out.append((f"{key}={how}", change))
+    for key in st["params"]:
+        for how in ("short", "nan", "string"):
+            def change(d, key=key, how=how):
+                v = d["params"][key]
+                d["params"][key] = v[:-1] if how == "short" else (v * float("nan") if how == "nan" else "x")
+            out.append((f"params.{key}={how}", change))
+    if st.get("mlp"):
+        first = next(iter(st["mlp"]))
+
+        def change(d, first=first):
+            d["mlp"][first] = d["mlp"][first][:, :-1]
+        out.append((f"mlp.{first}=wrong-shape", change))
     return out
 
 
