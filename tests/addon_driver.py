@@ -57,7 +57,7 @@ def main():
     import bpy
 
     install(job["zip"])
-    res = {}
+    res = {"blender_version": bpy.app.version_string}
     for step in job["steps"]:
         kind = step["do"]
         if kind == "import":

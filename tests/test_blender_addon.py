@@ -72,12 +72,13 @@ def sim_file(tmp_path_factory):
     return path
 
 
-def drive(zip_path, recon, out, steps, home):
+def drive(zip_path, recon, out, steps, home, python=sys.executable):
+    """Run the extension driver with ``python`` (an interpreter with the bpy module) on ``steps``."""
     job = out / "job.json"
     out.mkdir(parents=True, exist_ok=True)
     job.write_text(json.dumps({"zip": str(zip_path), "recon": str(recon), "out": str(out), "steps": steps}))
     env = dict(os.environ, HOME=str(home))
-    r = subprocess.run([sys.executable, str(DRIVER), str(job)], capture_output=True, text=True, env=env, timeout=900)
+    r = subprocess.run([str(python), str(DRIVER), str(job)], capture_output=True, text=True, env=env, timeout=900)
     assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
     return json.loads((out / "result.json").read_text()), r.stdout
 
