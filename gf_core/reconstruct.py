@@ -263,10 +263,10 @@ def check_checkpoint(st: dict, path) -> None:
             bad(f"{k!r} is {type(v).__name__}, expected {' or '.join(t.__name__ for t in types)}")
         if isinstance(v, float) and not math.isfinite(v):
             bad(f"{k!r} is {v}")
-    for k in ("frame_err", "time_map"):
-        if k in st and not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-                               for x in st[k]):
-            bad(f"{k!r} holds something other than finite numbers")
+    for k, nan_ok in (("frame_err", True), ("time_map", False)):  # frame_err: NaN = a frame not drawn yet
+        if k in st and not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                               and (math.isfinite(x) or (nan_ok and math.isnan(x))) for x in st[k]):
+            bad(f"{k!r} holds something other than {'numbers' if nan_ok else 'finite numbers'}")
     if not 1 <= st["phase"] <= 4 or st["iteration"] < 0 or st["phase_it"] < 0:
         bad(f"phase {st['phase']}, iteration {st['iteration']}, phase_it {st['phase_it']} out of range")
     params = st["params"]
