@@ -4,7 +4,8 @@ Same function as ``gf_core.temporal.Decoder`` (a test holds the two equal to 1e-
 
     A^t = A^0 + (tau - tau0) * Phi(theta, gamma(tau))                                   (Eq. 4)
 
-plus, when the reconstruction has them, the residuals R(tau) - R(tau0) between knots (cubic
+plus, when the reconstruction has them, the residuals R(tau) - R(tau0) (R(tau) where the
+canonical frame has residuals of its own, encoding ``canonical_residual``) between knots (cubic
 Hermite with three-point tangents, ``hermite_coefficients``; files written before it: linear),
 and the appearance residuals (the same on the degree-0 SH coefficient, output ``dc``, and on the
 logit opacity, output ``do``).
@@ -177,11 +178,15 @@ class NumpyDecoder:
         self.time_interpolation = time_interpolation(enc)
         self._at_knot = {}  # time_interpolation "knots": (tau - tau0) Phi at each knot, computed once
         self.knots = None if self.residuals is None else np.asarray(data.residual_knots, np.float64)
+        # R(tau) - R(tau0), R 0 at the canonical knot; or R(tau) with residuals of the canonical frame's own
+        self.canonical_residual = self.residuals is not None and canonical_residual(enc)
+        free = None if self.residuals is None else \
+            np.ones((1, len(self.knots), 1), np.float32) if self.canonical_residual else \
+            (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
         if self.residuals is not None:
-            self.residuals = self.residuals * (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
+            self.residuals = self.residuals * free
         # optional appearance residuals (recon.h5 version 3): the same knots, on the degree-0 SH
         # coefficient (colour) and on the logit opacity
-        free = None if self.residuals is None else (np.abs(self.knots - self.canonical_time) > 1e-6)[None, :, None]
         col, op = getattr(data, "color_residuals", None), getattr(data, "opacity_residuals", None)
         self.color_residuals = None if col is None or free is None else np.ascontiguousarray(col, np.float32) * free
         self.opacity_residuals = None if op is None or free is None else \
@@ -270,7 +275,7 @@ class NumpyDecoder:
     def _with_residuals(self, tau: float, out: np.ndarray, vel, with_velocity: bool) -> dict:
         if self.residuals is not None:
             r, slope = self._residual(tau)
-            out += r - self._residual(self.canonical_time)[0]
+            out += r if self.canonical_residual else r - self._residual(self.canonical_time)[0]
             if with_velocity:
                 vel += slope[:, :3]
         res, k = {}, 0
@@ -281,8 +286,18 @@ class NumpyDecoder:
             res["vp"] = vel
         for name, values in (("dc", self.color_residuals), ("do", self.opacity_residuals)):
             if values is not None:
-                res[name] = self._residual(tau, values)[0] - self._residual(self.canonical_time, values)[0]
+                r = self._residual(tau, values)[0]
+                res[name] = r if self.canonical_residual else r - self._residual(self.canonical_time, values)[0]
         return res
+
+
+def canonical_residual(encoding: dict) -> bool:
+    """Whether a decoder's encoding (recon.h5) gives the canonical frame residuals of its own
+    (Delta A = (tau - tau0) Phi + R(tau)); False when absent (R(tau) - R(tau0))."""
+    v = encoding.get("canonical_residual", False)
+    if not isinstance(v, (bool, np.bool_)):
+        raise InputError("recon.h5 decoder", f"canonical_residual {v!r} is not true or false")
+    return bool(v)
 
 
 def residual_interpolation(encoding: dict) -> str:

@@ -21,11 +21,12 @@ import numpy as np
 from .errors import FormatError, InputError, short_repr
 
 SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
-# version 2 adds the optional decoder residuals, version 3 the optional colour and opacity residuals; a file is
+# version 2 adds the optional decoder residuals, version 3 the optional colour and opacity residuals, version 4
+# residuals of the canonical frame's own (decoder encoding "canonical_residual"); a file is
 # written with the lowest version that holds what it has (without residuals: 1), so older readers
 # still read what they can render correctly
-RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 3
-RECON_VERSIONS_READ = (1, 2, 3)
+RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 4
+RECON_VERSIONS_READ = (1, 2, 3, 4)
 
 
 # ---- helpers -------------------------------------------------------------------------------------
@@ -580,7 +581,8 @@ def write_recon(path, r: ReconData) -> Path:
             has_res = r.decoder is not None and r.decoder.residuals is not None
             looks = [k for k in ("color_residuals", "opacity_residuals")
                      if has_res and getattr(r.decoder, k) is not None]
-            f.attrs["version"] = 3 if looks else (2 if has_res else 1)
+            own = has_res and bool(r.decoder.encoding.get("canonical_residual", False))
+            f.attrs["version"] = 4 if own else 3 if looks else (2 if has_res else 1)
             f.attrs["time_min"] = float(r.time_min)
             f.attrs["time_max"] = float(r.time_max)
             f.attrs["config"] = json.dumps(r.config)
@@ -610,6 +612,7 @@ def write_recon(path, r: ReconData) -> Path:
 
 def read_recon(path) -> ReconData:
     with _open_checked(path, RECON_FORMAT, RECON_VERSIONS_READ) as f:
+        version = int(f.attrs["version"])
         if "canonical" not in f:
             raise FormatError(path, "missing group 'canonical'")
         g = f["canonical"]
@@ -632,6 +635,8 @@ def read_recon(path) -> ReconData:
                 decoder.color_residuals = _read(d, "color_residuals", path, ndim=3)
             if "opacity_residuals" in d:
                 decoder.opacity_residuals = _read(d, "opacity_residuals", path, ndim=2)
+            if decoder.encoding.get("canonical_residual", False) and version < 4:
+                raise FormatError(path, f"decoder encoding has canonical_residual, which needs version 4 (file: {version})")
         r = ReconData(**arrays, time_min=_attr(f, "time_min", path),
                       time_max=_attr(f, "time_max", path), decoder=decoder,
                       config=_json_attr(f, "config", path), metrics=_json_attr(f, "metrics", path))

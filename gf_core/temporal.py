@@ -20,7 +20,14 @@ at knots (the training frames' tau), interpolated between them and constant outs
 
     Delta A^t = (tau - tau0) * Phi(theta, gamma(tau)) + R(tau) - R(tau0),
 
-still exactly A^0 at tau0. ``DecoderConfig.residual_interpolation = "hermite"`` joins the knots
+still exactly A^0 at tau0. With ``DecoderConfig.canonical_residual`` the canonical frame has a
+residual of its own and none is subtracted,
+
+    Delta A^t = (tau - tau0) * Phi(theta, gamma(tau)) + R(tau),
+
+the same family of motions reparametrised: the canonical frame is then A^0 + R(tau0), fitted by
+its own per-particle corrections like every other frame instead of by the canonical particles
+that every frame shares. ``DecoderConfig.residual_interpolation = "hermite"`` joins the knots
 with cubic Hermite segments whose tangents are the three-point derivatives at the knots
 (``hermite_coefficients``): positions and velocities are continuous across the training frames,
 and a particle in free fall (positions quadratic in time) gets its exact velocity away from the
@@ -30,7 +37,7 @@ a knot both give R_j exactly, so a step at the training frames trains the same v
 T times of a training step go through the MLP as one batch (``forward_many``).
 
 Optional appearance residuals (not in the paper, they need the pose residuals' knots): the same
-piecewise-linear R(tau) - R(tau0) on each particle's degree-0 SH coefficient (its base colour;
+R(tau) - R(tau0) (or R(tau) with ``canonical_residual``) on each particle's degree-0 SH coefficient (its base colour;
 ``DecoderConfig.color_residuals``, output ``dc`` (N, channels)) and on its logit opacity
 (``DecoderConfig.opacity_residuals``, output ``do`` (N, 1)). The particles' geometry is
 unchanged; what changes in time is only how a particle looks (a rendered water surface glints
@@ -51,7 +58,8 @@ import torch
 from torch import nn
 
 # TimeMap (seconds <-> tau) and the output layout are shared with the numpy twin, which needs no torch
-from .decoder_np import (OUTPUTS, RESIDUAL_INTERPOLATIONS, TIME_INTERPOLATIONS, TimeMap, residual_interpolation,
+from .decoder_np import (OUTPUTS, RESIDUAL_INTERPOLATIONS, TIME_INTERPOLATIONS, TimeMap, canonical_residual,
+                         residual_interpolation,
                          tangent_table, time_interpolation)
 from .errors import InputError
 
@@ -71,6 +79,7 @@ class DecoderConfig:
     residuals: bool = False      # per-particle pose corrections at the training frames (not in the paper)
     color_residuals: bool = False  # per-particle base-colour corrections at the same knots (not in the paper)
     opacity_residuals: bool = False  # per-particle logit-opacity corrections at the same knots (not in the paper)
+    canonical_residual: bool = False  # the canonical frame's knot has residuals too: Delta A = (tau - tau0) Phi + R(tau)
     residual_interpolation: str = "hermite"  # between the knots: "hermite" (C1) or "linear"
     time_interpolation: str = "decoder"  # between the knots: "decoder" (Phi at tau, Eq. 4) or "knots" (Phi at the
                                          # knots joined by the residuals' Hermite segments; needs residuals)
@@ -83,7 +92,7 @@ class DecoderConfig:
             raise InputError("decoder config", f"n_freqs must be >= 0, got {self.n_freqs}")
         if not 0.0 <= float(self.canonical_time) <= 1.0:
             raise InputError("decoder config", f"canonical_time must be in [0, 1], got {self.canonical_time}")
-        for k in ("color_residuals", "opacity_residuals"):
+        for k in ("color_residuals", "opacity_residuals", "canonical_residual"):
             if getattr(self, k) and not self.residuals:
                 raise InputError("decoder config", f"{k} need residuals = true (they share its knots)")
         if self.residual_interpolation not in RESIDUAL_INTERPOLATIONS:
@@ -171,8 +180,10 @@ class Decoder(nn.Module):
             # the Hermite tangents' weights per segment, fixed with the knots (residual_interpolation)
             self.register_buffer("tangents", torch.as_tensor(tangent_table(kn.numpy()), dtype=dtype, device=device),
                                  persistent=False)
-            # R is 0 at the canonical frame's knot (it would only shift every other frame)
-            self.knot_free = ((self.knots - c.canonical_time).abs() > 1e-6).to(dtype)
+            # R is 0 at the canonical frame's knot (R(tau) - R(tau0): it would only shift every other
+            # frame), unless the canonical frame has residuals of its own (canonical_residual)
+            self.knot_free = torch.ones_like(self.knots) if c.canonical_residual else \
+                ((self.knots - c.canonical_time).abs() > 1e-6).to(dtype)
             widths = dict(OUTPUTS, **({COLOR_OUTPUT: int(channels)} if c.color_residuals else {}),
                           **({OPACITY_OUTPUT: 1} if c.opacity_residuals else {}))
             for name, width in widths.items():
@@ -281,13 +292,13 @@ class Decoder(nn.Module):
                 out["vp"] = vmlp
             if self.knots is not None:
                 r, dr = self._residual_at(tau_t, name)
-                out[name] = out[name] + r - self._residual_at(tau0, name)[0]
+                out[name] = out[name] + r - (0.0 if self.cfg.canonical_residual else self._residual_at(tau0, name)[0])
                 if with_velocity and name == "dp":
                     out["vp"] = out["vp"] + dr
             k += width
         for name in self.appearance_outputs():
             r, _ = self._residual_at(tau_t, name)
-            out[name] = r - self._residual_at(tau0, name)[0]
+            out[name] = r if self.cfg.canonical_residual else r - self._residual_at(tau0, name)[0]
         return out
 
     def _mlp_between_knots(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool, own: bool):
@@ -378,7 +389,7 @@ class Decoder(nn.Module):
         c = self.cfg
         res = {k: v for k, v in self.residuals().items() if k[len(RESIDUAL_PREFIX):] in OUTPUTS}
 
-        def appearance(name):  # (N, F, k) at the knots, 0 at the canonical one; None when absent
+        def appearance(name):  # (N, F, k) at the knots (0 at the canonical one unless canonical_residual); None when absent
             if name not in self.appearance_outputs():
                 return None
             return (getattr(self, RESIDUAL_PREFIX + name) * self.knot_free[None, :, None]).detach().cpu().numpy()
@@ -388,7 +399,8 @@ class Decoder(nn.Module):
                            encoding={"n_freqs": c.n_freqs, "include_input": c.include_input,
                                      "canonical_time": c.canonical_time, "time_scaling": "tau - tau0",
                                      "residual_interpolation": c.residual_interpolation,
-                                     "time_interpolation": c.time_interpolation},
+                                     "time_interpolation": c.time_interpolation,
+                                     **({"canonical_residual": True} if c.canonical_residual else {})},
                            outputs=dict(OUTPUTS), activation="relu",
                            residuals=None if not res else
                            torch.cat([(v * self.knot_free[None, :, None]).detach() for v in res.values()], -1).cpu().numpy(),
@@ -414,6 +426,7 @@ class Decoder(nn.Module):
                             canonical_time=float(enc.get("canonical_time", 0.0)), residuals=res is not None,
                             color_residuals=col is not None, opacity_residuals=op is not None,
                             residual_interpolation=residual_interpolation(enc),
+                            canonical_residual=canonical_residual(enc) and res is not None,
                             time_interpolation=time_interpolation(enc))
         if d.layers[0][0].shape[1] != feat_dim + cfg.encoding_dim:
             raise InputError("recon.h5 decoder", f"first layer takes {d.layers[0][0].shape[1]} inputs; "

@@ -610,10 +610,11 @@ def test_error_sampling_starts_at_its_phase(blob, tmp_path):
         small_config(phases={"error_sampling_from": 1})
 
 
-@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True, "color_residuals": True, "opacity_residuals": True},
+@pytest.mark.parametrize("extra", [{}, {"decoder": {"residuals": True, "color_residuals": True, "opacity_residuals": True,
+                                                   "canonical_residual": True},
                                        "lr": {"residuals_beta1": 0.0, "residuals_final": 0.2},
                                        "phases": {"residuals_from": 2, "error_sampling": 0.5, "freeze_decoder": True}}],
-                         ids=["paper", "residuals+appearance+error-sampling+frozen-decoder"])
+                         ids=["paper", "residuals+appearance+canonical+error-sampling+frozen-decoder"])
 def test_resume_continues_exactly(blob, tmp_path, extra):
     """A run interrupted after a checkpoint and resumed ends where an uninterrupted run ends
     (with the decoder residuals, their own Adam momentum and error-weighted frames: their state
@@ -645,6 +646,7 @@ def test_resume_continues_exactly(blob, tmp_path, extra):
     if extra:
         assert ra.decoder.residuals.shape == (len(ra.means), 8, 10) and np.abs(ra.decoder.residuals).max() > 0
         assert np.allclose(ra.decoder.residuals, rb.decoder.residuals, atol=1e-5)
+        assert np.abs(ra.decoder.residuals[:, 0]).max() > 0  # the canonical frame's own residual trained
         for k in ("color_residuals", "opacity_residuals"):  # the appearance residuals trained and resumed
             a_k, b_k = getattr(ra.decoder, k), getattr(rb.decoder, k)
             assert np.abs(a_k).max() > 0 and np.allclose(a_k, b_k, atol=1e-5), k
