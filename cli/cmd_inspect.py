@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from gf_core.data import LAYOUTS
+
 
 def register(sub):
     p = sub.add_parser("inspect", help="validate and summarise a dataset, sim.h5 or recon.h5",
@@ -13,7 +15,7 @@ def register(sub):
                                    "and the problem if anything is malformed.")
     p.add_argument("path", type=Path, help="a dataset folder, a sim.h5 or a recon.h5")
     p.add_argument("--split", default="train", help="dataset split (default: train)")
-    p.add_argument("--layout", default="auto", choices=["auto", "nerf", "neurofluid", "video"],
+    p.add_argument("--layout", default="auto", choices=["auto", *LAYOUTS],
                    help="dataset layout (default: auto-detected)")
     p.add_argument("--grayscale", action="store_true", help="keep one channel (default: off)")
     p.add_argument("--decode", action="store_true",

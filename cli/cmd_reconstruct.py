@@ -31,7 +31,7 @@ def register(sub):
 
     p = sub.add_parser("reconstruct", help="reconstruct moving fluid particles from a multiview dataset",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("dataset", type=Path, help="dataset folder (NeRF/D-NeRF, NeuroFluid or video layout)")
+    p.add_argument("dataset", type=Path, help="dataset folder (NeRF/D-NeRF, NeuroFluid, video or COLMAP layout)")
     p.add_argument("--out", type=Path, required=True, help="run folder for recon.h5, metrics.jsonl, checkpoint.pt")
     p.add_argument("--preset", default="water", choices=["water", "honey", "smoke"],
                    help="configuration preset (default: water)")

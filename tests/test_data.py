@@ -280,8 +280,8 @@ def test_unknown_layout_and_missing_folder(tmp_path):
         load_dataset(tmp_path)
     with pytest.raises(InputError, match="dataset folder does not exist"):
         load_dataset(tmp_path / "nope")
-    with pytest.raises(ValueError, match="unknown dataset layout 'colmap'"):
-        load_dataset(tmp_path, layout="colmap")
+    with pytest.raises(ValueError, match="unknown dataset layout 'llff'"):
+        load_dataset(tmp_path, layout="llff")
 
 
 def test_inspect_checks_what_it_claims(tmp_path, rng, capsys):
@@ -365,3 +365,86 @@ def test_lens_keys_are_checked(tmp_path, rng):
     (tmp_path / "transforms_train.json").write_text(json.dumps(
         {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": [base]}))
     assert load_dataset(tmp_path).frames[0].distortion is None
+
+
+# ---- COLMAP rigs (sparse model + one video per camera) --------------------------------------------
+def rotation_to_quaternion(m):
+    """(w, x, y, z) of a rotation matrix (Shepperd's method, the branch of the largest component)."""
+    m = np.asarray(m, np.float64)
+    tr = np.trace(m)
+    cands = [1 + tr, 1 + m[0, 0] - m[1, 1] - m[2, 2], 1 - m[0, 0] + m[1, 1] - m[2, 2], 1 - m[0, 0] - m[1, 1] + m[2, 2]]
+    k = int(np.argmax(cands))
+    s = 2 * np.sqrt(cands[k])
+    if k == 0:
+        q = [s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif k == 1:
+        q = [(m[2, 1] - m[1, 2]) / s, s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif k == 2:
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s]
+    else:
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4]
+    return tuple(q)
+
+
+def write_colmap_rig(root, cams, imgs, *, binary=True, model="PINHOLE", extra=(), folder="sparse/0"):
+    from gf_core.data.colmap import write_model
+
+    cameras, images_ = {}, []
+    for v, cam in enumerate(cams):
+        write_video(root / f"cam{v:02d}.mkv", imgs[v], FPS)
+        params = {"PINHOLE": (cam.fx, cam.fy, cam.cx, cam.cy), "SIMPLE_PINHOLE": (cam.fx, cam.cx, cam.cy),
+                  "OPENCV": (cam.fx, cam.fy, cam.cx, cam.cy)}[model] + tuple(extra)
+        cameras[v + 1] = (model, cam.width, cam.height, params)
+        m = cam.world_to_camera
+        images_.append((10 + v, rotation_to_quaternion(m[:3, :3]), tuple(m[:3, 3]), v + 1, f"cam{v:02d}.png"))
+    write_model(root / folder, cameras, images_[::-1], binary=binary)  # order in the file: not the views'
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])
+def test_colmap_layout(tmp_path, rng, binary):
+    """A COLMAP sparse model of the rig (world-to-camera quaternions, PINHOLE intrinsics) and one
+    video per registered image: the cameras are the rig's own, views in the images' name order,
+    frames at k / fps; a point projects where the rig's camera projects it."""
+    cams, imgs = rig(), images(rng, channels=3)
+    write_colmap_rig(tmp_path, cams, imgs, binary=binary)
+    ds = load_dataset(tmp_path)
+    assert ds.meta["layout"] == "colmap"
+    check(ds, cams, imgs, np.arange(FRAMES) / FPS, alpha=False)
+    pts = np.array([[0.1, -0.2, 0.05], [-0.3, 0.1, 0.2]])
+    for v in range(VIEWS):
+        s = ds[ds.indices(view_id=v, time=0.0)[0]]
+        np.testing.assert_allclose(s.camera.project(pts)[0], cams[v].project(pts)[0], atol=1e-9)
+    assert len(load_dataset(tmp_path, fps=10.0).times) == FRAMES
+    assert np.allclose(load_dataset(tmp_path, fps=10.0).times, np.arange(FRAMES) / 10.0)  # --fps overrides the video's
+
+
+def test_colmap_lens_model_and_bad_models(tmp_path, rng):
+    from gf_core.data.colmap import write_model
+
+    cams, imgs = rig(), images(rng, channels=3)
+    write_colmap_rig(tmp_path, cams, imgs, model="OPENCV", extra=(-0.2, 0.05, 0.001, -0.002))
+    f = load_dataset(tmp_path).frames[0]
+    assert f.distortion.model == "OPENCV" and f.distortion.coeffs[:4] == (-0.2, 0.05, 0.001, -0.002)
+    # a missing video, an unknown camera, a truncated file, a wrong parameter count: one line each
+    (tmp_path / "cam01.mkv").unlink()
+    with pytest.raises(InputError, match=r"no video for COLMAP image 'cam01.png'"):
+        load_dataset(tmp_path)
+    write_video(tmp_path / "cam01.mkv", imgs[1], FPS)
+    data = (tmp_path / "sparse/0/images.bin").read_bytes()
+    (tmp_path / "sparse/0/images.bin").write_bytes(data[: len(data) - 30])
+    with pytest.raises(InputError, match=r"images.bin.*truncated"):
+        load_dataset(tmp_path)
+    write_model(tmp_path / "sparse/0", {1: ("PINHOLE", W, H, (20.0, 20.0, 12.0, 8.0))},
+                [(1, (1.0, 0, 0, 0), (0, 0, 2.0), 7, "cam00.png")])
+    with pytest.raises(InputError, match="refers to camera 7"):
+        load_dataset(tmp_path)
+    (tmp_path / "sparse/0/cameras.bin").unlink()
+    (tmp_path / "sparse/0/images.bin").unlink()
+    write_model(tmp_path / "sparse/0", {1: ("PINHOLE", W, H, (20.0, 20.0, 12.0, 8.0))},
+                [(1, (1.0, 0, 0, 0), (0, 0, 2.0), 1, "cam00.png")], binary=False)
+    (tmp_path / "sparse/0/cameras.txt").write_text("1 PINHOLE 24 16 20.0 20.0 12.0\n")
+    with pytest.raises(InputError, match="PINHOLE has 4 parameters, got 3"):
+        load_dataset(tmp_path)
+    (tmp_path / "sparse/0/cameras.txt").write_text("1 THIN_PRISM_FISHEYE 24 16 20.0 20.0 12.0 8.0\n")
+    with pytest.raises(InputError, match="camera model 'THIN_PRISM_FISHEYE' is not one of"):
+        load_dataset(tmp_path)

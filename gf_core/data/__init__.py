@@ -3,6 +3,8 @@
 - ``nerf``: ``path/transforms_{split}.json`` (NeRF / D-NeRF, per-frame ``time``)
 - ``neurofluid``: ``path/view_k/transforms_{split}.json``
 - ``video``: ``path/cameras.json`` + one video per camera
+- ``colmap``: a COLMAP sparse model (``path/sparse/0/cameras.bin`` + ``images.bin``, or .txt) + one
+  video per registered image, named by its stem
 ``grayscale=True`` keeps one channel (ScalarFlow-like smoke footage); ``background_removal``
 ("difference" or "xor") removes the background against each view's first frame.
 """
@@ -13,10 +15,11 @@ from pathlib import Path
 
 from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord, Sample
+from .colmap import load_colmap, model_folder
 from .nerf import load_nerf, load_neurofluid
 from .video import load_video, write_video
 
-LAYOUTS = ("nerf", "neurofluid", "video")
+LAYOUTS = ("nerf", "neurofluid", "video", "colmap")
 
 
 def detect_layout(path: Path, split: str = "train") -> str:
@@ -29,8 +32,10 @@ def detect_layout(path: Path, split: str = "train") -> str:
         return "neurofluid"
     if (path / "cameras.json").exists():
         return "video"
+    if model_folder(path) is not None:
+        return "colmap"
     raise InputError(path, f"no known dataset layout (looked for transforms_{split}.json, "
-                           f"view_*/transforms_{split}.json, cameras.json)")
+                           f"view_*/transforms_{split}.json, cameras.json, a COLMAP sparse/0/)")
 
 
 def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale: bool = False,
@@ -54,6 +59,8 @@ def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale:
         ds.background_removal = background_removal
     elif layout == "video":
         ds = load_video(path, grayscale=grayscale, background_removal=background_removal)
+    elif layout == "colmap":
+        ds = load_colmap(path, fps=fps, grayscale=grayscale, background_removal=background_removal)
     else:
         raise ValueError(f"unknown dataset layout {layout!r}; choose from auto, {', '.join(LAYOUTS)}")
     return to_seconds(ds, fps=fps, duration=duration)
@@ -90,4 +97,4 @@ def load_grayscale(path, *, layout: str = "auto", split: str = "train",
 
 
 __all__ = ["FluidDataset", "FrameRecord", "Sample", "load_dataset", "load_grayscale", "load_nerf",
-           "load_neurofluid", "load_video", "write_video", "detect_layout", "LAYOUTS"]
+           "load_neurofluid", "load_video", "load_colmap", "write_video", "detect_layout", "LAYOUTS"]

@@ -145,16 +145,10 @@ def _camera(entry: dict, w: int, h: int, json_path: Path, where: str) -> Camera:
                                 "'world_to_camera' (OpenCV)")
 
 
-def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = False,
-               background_removal: str | None = None) -> FluidDataset:
-    root = Path(root)
-    json_path = root / cameras_file
-    meta = read_json(json_path)
-    cams = meta.get("cameras")
-    if not isinstance(cams, list) or not cams:
-        raise InputError(json_path, "has no 'cameras' list (or it is empty)")
-    fps_all = _num(meta, "fps", json_path, "top level")
-    t0 = _num(meta, "start_time", json_path, "top level") or 0.0
+def video_records(root: Path, cams: list, json_path: Path, *, fps: float | None,
+                  start_time: float, fps_hint: str | None = None) -> list[FrameRecord]:
+    """Frame records of every camera entry (``cameras.json`` keys; errors name ``json_path``):
+    frame k of a camera's video at start_time + k / fps (``fps`` or the video's own rate)."""
     records: list[FrameRecord] = []
     for k, entry in enumerate(cams):
         where = f"camera {k}"
@@ -166,14 +160,28 @@ def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = Fa
         if (ew is not None and int(ew) != w) or (eh is not None and int(eh) != h):
             raise InputError(video, f"video is {w}x{h} but {json_path.name} says "
                                     f"{int(ew or w)}x{int(eh or h)}")
-        fps = fps_all or fps_file
-        if not fps or fps <= 0:
-            raise InputError(video, "video has no frame rate; give 'fps' in " + json_path.name)
+        rate = fps or fps_file
+        if not rate or rate <= 0:
+            raise InputError(video, "video has no frame rate; " + (fps_hint or f"give 'fps' in {json_path.name}"))
         cam = _camera(entry, w, h, json_path, where)
         view = view_id(entry, json_path, where, default=k)
         dist = distortion_from_keys(entry, json_path, where)
-        records.extend(FrameRecord(camera=cam, time=t0 + i / fps, view_id=view, file=video,
+        records.extend(FrameRecord(camera=cam, time=start_time + i / rate, view_id=view, file=video,
                                    frame_index=i, distortion=dist) for i in range(n))
+    return records
+
+
+def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = False,
+               background_removal: str | None = None) -> FluidDataset:
+    root = Path(root)
+    json_path = root / cameras_file
+    meta = read_json(json_path)
+    cams = meta.get("cameras")
+    if not isinstance(cams, list) or not cams:
+        raise InputError(json_path, "has no 'cameras' list (or it is empty)")
+    fps_all = _num(meta, "fps", json_path, "top level")
+    t0 = _num(meta, "start_time", json_path, "top level") or 0.0
+    records = video_records(root, cams, json_path, fps=fps_all, start_time=t0)
     ch = 1 if grayscale else 3
     bg = _background({"background": meta.get("background", 0.0)}, ch, json_path)
     return FluidDataset(frames=records, root=root, channels=ch, background=bg,
