@@ -248,6 +248,14 @@ def cases(base: dict) -> list[Case]:
             return ["inspect", str(root), "--layout", "video"]
         out.append(Case(f"cameras:{name}", make, must_refuse="=" not in name, tags=["video"]))
 
+    # COLMAP rig: the sparse model's binary fields and text tokens, through inspect
+    for name, change in colmap_variants():
+        def make(tmp, change=change, binary=name.startswith("bin")):
+            root = _colmap_dataset(base, tmp, binary=binary)
+            change(root / "sparse" / "0")
+            return ["inspect", str(root), "--layout", "colmap"]
+        out.append(Case(f"colmap:{name}", make, must_refuse="truncated" in name, tags=["colmap"]))
+
     # sim.h5 through inspect, render-dataset's reader and evaluate --gt
     for kind, item in h5_items(base["sim"]):
         for how in H5_VALUES:
@@ -396,6 +404,84 @@ OPTION_CASES = [
     ["render-dataset", "{sim}", "--out", "{tmp}/d", "--samples", "0"],
     ["render-dataset", "{sim}", "--out", "{sim}"],
 ]
+
+
+# COLMAP binary fields: (file, name, byte offset of the first camera / image record's field, struct format, value)
+COLMAP_FIELDS = [
+    ("cameras.bin", "count-huge", 0, "<Q", 2 ** 40), ("cameras.bin", "count-zero", 0, "<Q", 0),
+    ("cameras.bin", "model-unknown", 12, "<i", 99), ("cameras.bin", "model-negative", 12, "<i", -3),
+    ("cameras.bin", "width-zero", 16, "<Q", 0), ("cameras.bin", "height-huge", 24, "<Q", 2 ** 62),
+    ("cameras.bin", "fx-nan", 32, "<d", float("nan")), ("cameras.bin", "fx-negative", 32, "<d", -20.0),
+    ("cameras.bin", "cx-inf", 48, "<d", float("inf")),
+    ("images.bin", "count-huge", 0, "<Q", 2 ** 40), ("images.bin", "count-zero", 0, "<Q", 0),
+    ("images.bin", "q-zero", 12, "<dddd", (0.0, 0.0, 0.0, 0.0)), ("images.bin", "q-nan", 12, "<d", float("nan")),
+    ("images.bin", "t-inf", 44, "<d", float("inf")), ("images.bin", "camera-unknown", 68, "<i", 99),
+    ("images.bin", "name-not-utf8", 72, "<BB", (0xFF, 0xFE)),
+]
+
+
+def colmap_variants():
+    """(name, change(model folder)) for the binary model's fields and truncations and the text
+    model's every token (wrong, NaN, missing, an extra one) and line."""
+    import struct
+
+    for fname, name, off, fmt, value in COLMAP_FIELDS:
+        def change(folder, fname=fname, off=off, fmt=fmt, value=value):
+            p = folder / fname
+            data = bytearray(p.read_bytes())
+            struct.pack_into(fmt, data, off, *(value if isinstance(value, tuple) else (value,)))
+            p.write_bytes(bytes(data))
+        yield f"bin:{fname}:{name}", change
+    for fname in ("cameras.bin", "images.bin"):
+        for frac in (0.0, 0.05, 0.3, 0.6, 0.95):
+            def change(folder, fname=fname, frac=frac):
+                p = folder / fname
+                data = p.read_bytes()
+                p.write_bytes(data[: int(len(data) * frac)])
+            yield f"bin:{fname}:truncated{frac}", change
+    # text: the first camera line has 8 tokens (id model w h fx fy cx cy), the first image line 10
+    for fname, tokens in (("cameras.txt", 8), ("images.txt", 10)):
+        for k in range(tokens):
+            for how, repl in (("word", "x"), ("nan", "nan"), ("negative", "-1"), ("missing", None)):
+                def change(folder, fname=fname, k=k, repl=repl):
+                    p = folder / fname
+                    lines = p.read_text().splitlines()
+                    i = next(j for j, ln in enumerate(lines) if ln and not ln.startswith("#"))
+                    toks = lines[i].split()
+                    if repl is None:
+                        del toks[k]
+                    else:
+                        toks[k] = repl
+                    lines[i] = " ".join(toks)
+                    p.write_text("\n".join(lines) + "\n")
+                yield f"txt:{fname}:token{k}={how}", change
+        for how in ("empty", "extra-token", "not-utf8"):
+            def change(folder, fname=fname, how=how):
+                p = folder / fname
+                if how == "empty":
+                    p.write_text("")
+                elif how == "not-utf8":
+                    p.write_bytes(b"\xff\xfe" + p.read_text().encode("utf-16-le"))
+                else:
+                    lines = p.read_text().splitlines()
+                    i = next(j for j, ln in enumerate(lines) if ln and not ln.startswith("#"))
+                    lines[i] += " 3.5"
+                    p.write_text("\n".join(lines) + "\n")
+            yield f"txt:{fname}:{how}", change
+
+
+def _colmap_dataset(base, tmp: Path, binary: bool) -> Path:
+    """The video layout's videos beside a COLMAP model of its cameras (no cameras.json)."""
+    from gf_core.data import load_dataset
+    from gf_core.data.colmap import write_rig
+
+    root = _video_dataset(base, tmp)
+    ds = load_dataset(root, layout="video")
+    cams = {f.view_id: f.camera for f in ds.frames}
+    (root / "cameras.json").unlink()
+    write_rig(root / "sparse" / "0", [cams[v] for v in sorted(cams)], [f"view{v}.png" for v in sorted(cams)],
+              binary=binary)
+    return root
 
 
 def _video_cameras(base) -> dict:

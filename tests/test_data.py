@@ -368,36 +368,15 @@ def test_lens_keys_are_checked(tmp_path, rng):
 
 
 # ---- COLMAP rigs (sparse model + one video per camera) --------------------------------------------
-def rotation_to_quaternion(m):
-    """(w, x, y, z) of a rotation matrix (Shepperd's method, the branch of the largest component)."""
-    m = np.asarray(m, np.float64)
-    tr = np.trace(m)
-    cands = [1 + tr, 1 + m[0, 0] - m[1, 1] - m[2, 2], 1 - m[0, 0] + m[1, 1] - m[2, 2], 1 - m[0, 0] - m[1, 1] + m[2, 2]]
-    k = int(np.argmax(cands))
-    s = 2 * np.sqrt(cands[k])
-    if k == 0:
-        q = [s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif k == 1:
-        q = [(m[2, 1] - m[1, 2]) / s, s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif k == 2:
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s]
-    else:
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4]
-    return tuple(q)
+def write_colmap_rig(root, cams, imgs, *, binary=True, model="PINHOLE", extra=()):
+    from gf_core.data.colmap import write_rig
 
-
-def write_colmap_rig(root, cams, imgs, *, binary=True, model="PINHOLE", extra=(), folder="sparse/0"):
-    from gf_core.data.colmap import write_model
-
-    cameras, images_ = {}, []
-    for v, cam in enumerate(cams):
+    for v in range(len(cams)):
         write_video(root / f"cam{v:02d}.mkv", imgs[v], FPS)
-        params = {"PINHOLE": (cam.fx, cam.fy, cam.cx, cam.cy), "SIMPLE_PINHOLE": (cam.fx, cam.cx, cam.cy),
-                  "OPENCV": (cam.fx, cam.fy, cam.cx, cam.cy)}[model] + tuple(extra)
-        cameras[v + 1] = (model, cam.width, cam.height, params)
-        m = cam.world_to_camera
-        images_.append((10 + v, rotation_to_quaternion(m[:3, :3]), tuple(m[:3, 3]), v + 1, f"cam{v:02d}.png"))
-    write_model(root / folder, cameras, images_[::-1], binary=binary)  # order in the file: not the views'
+    params = [(c.fx, c.fy, c.cx, c.cy) + tuple(extra) for c in cams]
+    # listed in the file in reverse: the views follow the images' names, not the file's order
+    write_rig(root / "sparse/0", cams[::-1], [f"cam{v:02d}.png" for v in range(len(cams))][::-1], binary=binary,
+              params=params[::-1], model=model)
 
 
 @pytest.mark.parametrize("binary", [True, False], ids=["bin", "txt"])

@@ -226,6 +226,34 @@ def load_colmap(root, *, fps: float | None = None, grayscale: bool = False,
                         background_removal=background_removal, meta={"layout": "colmap"})
 
 
+def rotation_to_quaternion(m) -> tuple:
+    """(w, x, y, z) of a 3x3 rotation matrix (Shepperd's method: the branch of the largest component)."""
+    m = np.asarray(m, np.float64)
+    tr = np.trace(m)
+    cands = [1 + tr, 1 + m[0, 0] - m[1, 1] - m[2, 2], 1 - m[0, 0] + m[1, 1] - m[2, 2], 1 - m[0, 0] - m[1, 1] + m[2, 2]]
+    k = int(np.argmax(cands))
+    s = 2 * np.sqrt(cands[k])
+    if k == 0:
+        q = [s / 4, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif k == 1:
+        q = [(m[2, 1] - m[1, 2]) / s, s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif k == 2:
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s]
+    else:
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4]
+    return tuple(float(v) for v in q)
+
+
+def write_rig(folder: Path, cameras, names, *, binary: bool = True, params=None, model: str = "PINHOLE") -> Path:
+    """The COLMAP model of a rig of toolkit cameras (``camera.Camera``, pinhole; image k named
+    ``names[k]``); ``params`` per camera replaces the PINHOLE parameters (another ``model``)."""
+    cams = {k + 1: (model, c.width, c.height, params[k] if params is not None else (c.fx, c.fy, c.cx, c.cy))
+            for k, c in enumerate(cameras)}
+    images = [(k + 1, rotation_to_quaternion(c.world_to_camera[:3, :3]), tuple(float(v) for v in c.world_to_camera[:3, 3]),
+               k + 1, name) for k, (c, name) in enumerate(zip(cameras, names))]
+    return write_model(folder, cams, images, binary=binary)
+
+
 def write_model(folder: Path, cameras: dict[int, tuple], images: list[tuple], *, binary: bool = True) -> Path:
     """A COLMAP sparse model with no 3D points: ``cameras`` {id: (model name, w, h, params)},
     ``images`` [(id, (qw, qx, qy, qz), (tx, ty, tz), camera id, name)]. For tests and exporters."""
