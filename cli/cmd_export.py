@@ -1,4 +1,4 @@
-"""``gf-cli export RUN --format ply|particles|vdb|usd``: a reconstruction for other tools."""
+"""``gf-cli export RUN --format ply|particles|vtk|vdb|usd``: a reconstruction for other tools."""
 
 from __future__ import annotations
 
@@ -7,15 +7,17 @@ from pathlib import Path
 
 
 def register(sub):
-    p = sub.add_parser("export", help="write a reconstruction as 3DGS PLY, particle PLYs, OpenVDB or USD",
+    p = sub.add_parser("export", help="write a reconstruction as 3DGS PLY, particle PLYs or VTK, OpenVDB or USD",
                        description="ply: the Gaussians at one time as a 3DGS-compatible PLY (x y z nx ny nz f_dc_* "
                                    "f_rest_* opacity scale_* rot_*), or one per frame with --frames. particles: per "
-                                   "frame a PLY of points with velocity (x y z vx vy vz radius opacity). vdb: per "
+                                   "frame a PLY of points with velocity (x y z vx vy vz radius opacity). vtk: the same points per "
+                                   "frame as legacy VTK with a velocity vector (meshio / Blender's sequence loader: "
+                                   "motion blur). vdb: per "
                                    "frame an OpenVDB density grid. usd: one USD file of points with a time sample "
                                    "per frame (pxr and openvdb come with the bpy module). Frames are the "
                                    "reconstruction's training frames, or a grid at --fps over its clip.")
     p.add_argument("run", type=Path, help="run folder (holding recon.h5) or a recon.h5 file")
-    p.add_argument("--format", required=True, choices=["ply", "particles", "vdb", "usd"], help="what to write")
+    p.add_argument("--format", required=True, choices=["ply", "particles", "vtk", "vdb", "usd"], help="what to write")
     p.add_argument("--time", type=float, default=None,
                    help="ply: seconds into the clip (default: the first frame); exclusive with --frames")
     p.add_argument("--frames", default=None,
@@ -86,7 +88,7 @@ def run(args) -> int:
         ex.export_usd(anim, times, out, fps=fps, radius_scale=args.radius_scale)
         print(f"wrote {out} ({len(times)} time samples at {fps:g} per second, {anim.num_particles} points)")
         return 0
-    out = args.out or base / {"ply": "ply", "particles": "particles", "vdb": "vdb"}[fmt]
+    out = args.out or base / {"ply": "ply", "particles": "particles", "vtk": "vtk", "vdb": "vdb"}[fmt]
     if out.exists() and not out.is_dir():
         raise InputError(out, f"--out for {fmt} is a folder (one file per frame), and this is a file")
     if fmt == "ply":
@@ -94,6 +96,8 @@ def run(args) -> int:
                  for k, t in enumerate(times)]
     elif fmt == "particles":
         files = ex.export_particles(anim, times, out, radius_scale=args.radius_scale)
+    elif fmt == "vtk":
+        files = ex.export_vtk(anim, times, out, radius_scale=args.radius_scale)
     else:
         files = ex.export_vdb(anim, times, out, voxel=args.voxel, radius_scale=args.radius_scale)
     print(f"wrote {len(files)} files to {out} (times {times[0]:g} .. {times[-1]:g} s)")

@@ -9,6 +9,10 @@
   properties and refuse or misread others; a lower degree drops the coefficients above it.
 - ``particles``: per frame a PLY of points: x y z vx vy vz radius opacity (velocities from the
   decoder's time derivative, m/s).
+- ``vtk``: per frame a legacy VTK file (an unstructured grid of vertex cells, binary) of the same points, with ``velocity``
+  as a 3-vector and ``radius``, ``opacity`` as scalars: what meshio-based loaders (Blender's
+  sequence loader, ParaView) read as a ``velocity`` vector attribute (motion blur), which no PLY
+  reader gives (PLY properties are scalars).
 - ``vdb``: per frame an OpenVDB float grid ``density``, class fog volume (``gf_core.caches``).
 - ``usd``: one USD file of points with time samples: positions, widths, velocities, and the
   base colour and opacity of every point as ``displayColor`` / ``displayOpacity`` (``gf_core.caches``).
@@ -28,7 +32,7 @@ from .decoder_np import ParticleAnimation
 from .errors import FormatError, InputError
 from .io import atomic_path
 
-FORMATS = ("ply", "particles", "vdb", "usd")
+FORMATS = ("ply", "particles", "vtk", "vdb", "usd")
 
 
 # ---- PLY (binary little-endian, float32 properties) ------------------------------------------------
@@ -205,6 +209,37 @@ def export_particles(anim: ParticleAnimation, times, out_dir, radius_scale: floa
     return out
 
 
+def write_vtk_points(path, positions, vectors: dict, scalars: dict, *, title: str = "gaussfluids particles") -> Path:
+    """A legacy VTK file (version 4.2, binary: big-endian float32 / int32) of points as vertex
+    cells of an unstructured grid (the dataset kind every legacy reader takes, meshio included), with point data: ``vectors`` (name -> (N, 3)) and ``scalars`` (name -> (N,)). Atomic."""
+    p = np.asarray(positions, np.float64)
+    n = len(p)
+    out = [f"# vtk DataFile Version 4.2\n{title[:250]}\nBINARY\nDATASET UNSTRUCTURED_GRID\nPOINTS {n} float\n".encode(),
+           p.astype(">f4").tobytes(), f"\nCELLS {n} {2 * n}\n".encode(),
+           np.stack([np.ones(n, ">i4"), np.arange(n, dtype=">i4")], 1).astype(">i4").tobytes(),
+           f"\nCELL_TYPES {n}\n".encode(), np.ones(n, ">i4").tobytes(),  # 1 = VTK_VERTEX
+           f"\nPOINT_DATA {n}\n".encode()]
+    for name, v in vectors.items():
+        out += [f"VECTORS {name} float\n".encode(), np.asarray(v, np.float64).reshape(n, 3).astype(">f4").tobytes(), b"\n"]
+    for name, v in scalars.items():
+        out += [f"SCALARS {name} float 1\nLOOKUP_TABLE default\n".encode(),
+                np.asarray(v, np.float64).reshape(n).astype(">f4").tobytes(), b"\n"]
+    with atomic_path(Path(path)) as tmp:
+        Path(tmp).write_bytes(b"".join(out))
+    return Path(path)
+
+
+def export_vtk(anim: ParticleAnimation, times, out_dir, radius_scale: float = 1.0) -> list[Path]:
+    out = []
+    for k, t in enumerate(times):
+        g = anim.at(t, velocity=True, warn=True)
+        out.append(write_vtk_points(Path(out_dir) / f"particles_{k:05d}.vtk", g["positions"],
+                                    {"velocity": g["velocities"]},
+                                    {"radius": particle_radii(g["log_scales"], radius_scale), "opacity": g["opacities"]},
+                                    title=f"gaussfluids particles t={float(t):.6g} s"))
+    return out
+
+
 def export_vdb(anim: ParticleAnimation, times, out_dir, *, voxel: float | None = None,
                radius_scale: float = 1.0) -> list[Path]:
     from .caches import density_grid, write_vdb_density
@@ -234,4 +269,4 @@ def export_usd(anim: ParticleAnimation, times, path, *, fps: float, radius_scale
 
 
 __all__ = ["FORMATS", "SH_DEGREES", "write_ply", "read_ply", "gaussians_to_ply_columns", "ply_columns_to_gaussians",
-           "export_times", "sample_rate", "export_ply", "export_particles", "export_vdb", "export_usd", "particle_radii"]
+           "export_times", "sample_rate", "export_ply", "export_particles", "export_vtk", "write_vtk_points", "export_vdb", "export_usd", "particle_radii"]
