@@ -1,4 +1,4 @@
-"""``gf-cli export RUN --format ply|particles|vtk|vdb|usd``: a reconstruction for other tools."""
+"""``gf-cli export RUN --format ply|gltf|particles|vtk|vdb|usd``: a reconstruction for other tools."""
 
 from __future__ import annotations
 
@@ -7,9 +7,10 @@ from pathlib import Path
 
 
 def register(sub):
-    p = sub.add_parser("export", help="write a reconstruction as 3DGS PLY, particle PLYs or VTK, OpenVDB or USD",
+    p = sub.add_parser("export", help="write a reconstruction as 3DGS PLY or glTF, particle PLYs or VTK, OpenVDB or USD",
                        description="ply: the Gaussians at one time as a 3DGS-compatible PLY (x y z nx ny nz f_dc_* "
-                                   "f_rest_* opacity scale_* rot_*), or one per frame with --frames. particles: per "
+                                   "f_rest_* opacity scale_* rot_*), or one per frame with --frames. gltf: the same as binary glTF (.glb) "
+                                   "with KHR_gaussian_splatting. particles: per "
                                    "frame a PLY of points with velocity (x y z vx vy vz radius opacity). vtk: the same points per "
                                    "frame as legacy VTK with a velocity vector (meshio / Blender's sequence loader: "
                                    "motion blur). vdb: per "
@@ -17,11 +18,11 @@ def register(sub):
                                    "per frame (pxr and openvdb come with the bpy module). Frames are the "
                                    "reconstruction's training frames, or a grid at --fps over its clip.")
     p.add_argument("run", type=Path, help="run folder (holding recon.h5) or a recon.h5 file")
-    p.add_argument("--format", required=True, choices=["ply", "particles", "vtk", "vdb", "usd"], help="what to write")
+    p.add_argument("--format", required=True, choices=["ply", "gltf", "particles", "vtk", "vdb", "usd"], help="what to write")
     p.add_argument("--time", type=float, default=None,
-                   help="ply: seconds into the clip (default: the first frame); exclusive with --frames")
+                   help="ply, gltf: seconds into the clip (default: the first frame); exclusive with --frames")
     p.add_argument("--frames", default=None,
-                   help="START:END:STEP over the frames (default: every frame; ply: one file per frame)")
+                   help="START:END:STEP over the frames (default: every frame; ply, gltf: one file per frame)")
     p.add_argument("--fps", type=float, default=None,
                    help="frames on a grid at this rate over the clip instead of the training frames "
                         "(the decoder is continuous: 2x the source rate gives in-between frames)")
@@ -42,8 +43,8 @@ def check_options(args) -> None:
 
     if args.time is not None and args.frames is not None:
         raise InputError("--time", "give --time or --frames, not both")
-    if args.time is not None and args.format != "ply":
-        raise InputError("--time", f"is for --format ply; {args.format} takes --frames")
+    if args.time is not None and args.format not in ("ply", "gltf"):
+        raise InputError("--time", f"is for --format ply or gltf; {args.format} takes --frames")
     if args.time is not None and not math.isfinite(args.time):
         raise InputError("--time", f"must be a finite number of seconds, got {args.time}")
     if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
@@ -71,12 +72,18 @@ def run(args) -> int:
     base = (args.run if args.run.is_dir() else args.run.parent) / "export"
     frames = parse_frames(args.frames) if args.frames is not None else None
     fmt = args.format
-    if fmt == "ply" and args.frames is None:
+    if fmt in ("ply", "gltf") and args.frames is None:
         t = float(recon.time_min) if args.time is None else args.time
-        out = args.out or base / f"gaussians_t{t:.4f}.ply"
+        suffix = {"ply": ".ply", "gltf": ".glb"}[fmt]
+        out = args.out or base / f"gaussians_t{t:.4f}{suffix}"
         if out.exists() and out.is_dir():
-            raise InputError(out, "--out for a single PLY must be a file path, and this is a folder")
-        ex.export_ply(anim, t, out, sh_degree=args.sh_degree)
+            raise InputError(out, f"--out for a single {fmt} file must be a file path, and this is a folder")
+        if fmt == "gltf" and out.suffix != ".glb":
+            raise InputError(out, "--out for gltf must end in .glb (binary glTF)")
+        if fmt == "ply":
+            ex.export_ply(anim, t, out, sh_degree=args.sh_degree)
+        else:
+            ex.export_gltf(anim, t, out)
         print(f"wrote {out} ({anim.num_particles} Gaussians at t = {t:g} s)")
         return 0
     times = ex.export_times(recon, frames=frames, fps=args.fps)
@@ -88,12 +95,14 @@ def run(args) -> int:
         ex.export_usd(anim, times, out, fps=fps, radius_scale=args.radius_scale)
         print(f"wrote {out} ({len(times)} time samples at {fps:g} per second, {anim.num_particles} points)")
         return 0
-    out = args.out or base / {"ply": "ply", "particles": "particles", "vtk": "vtk", "vdb": "vdb"}[fmt]
+    out = args.out or base / {"ply": "ply", "gltf": "gltf", "particles": "particles", "vtk": "vtk", "vdb": "vdb"}[fmt]
     if out.exists() and not out.is_dir():
         raise InputError(out, f"--out for {fmt} is a folder (one file per frame), and this is a file")
     if fmt == "ply":
         files = [ex.export_ply(anim, t, out / f"gaussians_{k:05d}.ply", sh_degree=args.sh_degree)
                  for k, t in enumerate(times)]
+    elif fmt == "gltf":
+        files = [ex.export_gltf(anim, t, out / f"gaussians_{k:05d}.glb") for k, t in enumerate(times)]
     elif fmt == "particles":
         files = ex.export_particles(anim, times, out, radius_scale=args.radius_scale)
     elif fmt == "vtk":

@@ -312,3 +312,72 @@ def test_exported_velocities_reach_the_next_sample(tmp_path):
     miss = np.linalg.norm(p[:-1] + v[:-1] * h - p[1:], axis=2)
     assert step.min() > 0.02  # the particles do move: 2-4 cm per sample
     assert (miss / step).max() < 0.10, (miss / step).max()
+
+
+def read_glb(path):
+    """A strict reader of binary glTF 2.0 as the spec lays it out: (JSON document, {attribute: array})."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    magic, version, length = struct.unpack_from("<III", data, 0)
+    assert magic == 0x46546C67 and version == 2 and length == len(data)
+    jlen, jtype = struct.unpack_from("<II", data, 12)
+    assert jtype == 0x4E4F534A and jlen % 4 == 0
+    doc = json.loads(data[20:20 + jlen])
+    blen, btype = struct.unpack_from("<II", data, 20 + jlen)
+    assert btype == 0x004E4942 and blen % 4 == 0 and 28 + jlen + blen == len(data)
+    blob = data[28 + jlen:]
+    assert doc["buffers"][0]["byteLength"] <= blen and "uri" not in doc["buffers"][0]
+    widths = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+    prim = doc["meshes"][doc["nodes"][doc["scenes"][doc["scene"]]["nodes"][0]]["mesh"]]["primitives"][0]
+    out = {}
+    for name, k in prim["attributes"].items():
+        acc = doc["accessors"][k]
+        view = doc["bufferViews"][acc["bufferView"]]
+        assert acc["componentType"] == 5126 and view["byteOffset"] % 4 == 0
+        w = widths[acc["type"]]
+        assert view["byteLength"] == acc["count"] * w * 4
+        out[name] = np.frombuffer(blob, "<f4", acc["count"] * w, view["byteOffset"]).reshape(acc["count"], w)
+    return doc, prim, out
+
+
+def test_gltf_gaussians_follow_khr_gaussian_splatting(recon_file, tmp_path):
+    """The .glb export read back by the spec's layout: a POINTS primitive with the extension's
+    attributes holding the decoded Gaussians (log scales, unit x y z w quaternions, opacities in
+    [0, 1], every SH coefficient of the model's degree in the 3DGS order), POSITION min/max,
+    COLOR_0 the base colour, the extension listed as used, and a node turning z-up into y-up."""
+    from gf_cli.main import main
+
+    r = read_recon(recon_file)
+    anim = ParticleAnimation(r)
+    out = tmp_path / "g.glb"
+    assert main(["export", str(recon_file), "--format", "gltf", "--time", "0.1", "--out", str(out)]) == 0
+    doc, prim, a = read_glb(out)
+    ext = "KHR_gaussian_splatting"
+    assert doc["asset"]["version"] == "2.0" and ext in doc["extensionsUsed"]
+    assert prim["mode"] == 0 and prim["extensions"][ext]["kernel"] == "ellipse"
+    assert prim["extensions"][ext]["colorSpace"] == "srgb_rec709_display"
+    g = anim.at(0.1)
+    np.testing.assert_allclose(a["POSITION"], g["positions"], atol=1e-7)
+    acc = doc["accessors"][prim["attributes"]["POSITION"]]
+    np.testing.assert_allclose([acc["min"], acc["max"]], [g["positions"].min(0), g["positions"].max(0)], atol=1e-6)
+    np.testing.assert_allclose(a[f"{ext}:SCALE"], g["log_scales"], atol=1e-7)
+    q = g["quats"] / np.linalg.norm(g["quats"], axis=1, keepdims=True)
+    np.testing.assert_allclose(a[f"{ext}:ROTATION"], q[:, [1, 2, 3, 0]], atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(a[f"{ext}:ROTATION"], axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(a[f"{ext}:OPACITY"][:, 0], g["opacities"], atol=1e-6)
+    k = g["sh"].shape[1]
+    assert k == 4 and sorted(n for n in a if ":SH_DEGREE_" in n) == sorted(
+        [f"{ext}:SH_DEGREE_0_COEF_0"] + [f"{ext}:SH_DEGREE_1_COEF_{m}" for m in range(3)])
+    for ell, m in ((0, 0), (1, 0), (1, 1), (1, 2)):
+        np.testing.assert_allclose(a[f"{ext}:SH_DEGREE_{ell}_COEF_{m}"], g["sh"][:, ell * ell + m], atol=1e-7)
+    np.testing.assert_allclose(a["COLOR_0"][:, :3], g["colors"], atol=1e-6)
+    rot = doc["nodes"][0]["rotation"]  # x y z w: -90 degrees about x takes +z (up) to +y (glTF's up)
+    x, y, z, w = rot
+    up = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+    np.testing.assert_allclose(up, [0, 1, 0], atol=1e-12)
+    # one file per frame with --frames
+    assert main(["export", str(recon_file), "--format", "gltf", "--frames", "0:4:2", "--out", str(tmp_path / "f")]) == 0
+    assert sorted(f.name for f in (tmp_path / "f").iterdir()) == ["gaussians_00000.glb", "gaussians_00001.glb"]
+    assert main(["export", str(recon_file), "--format", "gltf", "--out", str(tmp_path / "x.gltf")]) == 2
