@@ -2,7 +2,7 @@
 
 File > Import > GaussFluids reconstruction (.h5) makes a point-cloud object whose positions, radii
 and ``velocity`` attribute follow the time-continuous decoder (paper Eq. 4, evaluated in numpy:
-``gf_core/decoder_np.py``) at the scene's current frame, sub-frames included, through a persistent
+``gf_core/formats/decoder_np.py``) at the scene's current frame, sub-frames included, through a persistent
 ``frame_change_pre`` handler. The sidebar (View3D > N > GaussFluids) switches material presets
 (style transfer, paper Sec. 4.3.3), tunes radius, colour and time mapping, bakes USD / OpenVDB
 caches, and renders a multiview training dataset of a ``sim.h5`` with ``render_data/``.

@@ -13,8 +13,8 @@ import os
 import bpy
 import numpy as np
 
-from .gf_core.decoder_np import ParticleAnimation
-from .gf_core.io import read_recon
+from .gf_core.formats.decoder_np import ParticleAnimation
+from .gf_core.formats.hdf5 import read_recon
 
 _CACHE = {}       # absolute path -> (stat key, ParticleAnimation)
 STATUS = {}       # object name -> text shown in the sidebar (out of range, errors)

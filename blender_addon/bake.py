@@ -1,6 +1,6 @@
 """Bakes: the decoded animation as a USD points cache and, for smoke, OpenVDB density grids.
 
-The file writing is the toolkit's (``gf_core/caches.py``, shared with ``gf-cli export``); this
+The file writing is the toolkit's (``gf_core/formats/caches.py``, shared with ``gf-cli export``); this
 module samples the reconstruction at scene frames.
 """
 
@@ -10,7 +10,7 @@ import sys
 import bpy
 import numpy as np
 
-from .gf_core import caches
+from .gf_core.formats import caches
 
 
 def _blender_site_packages():

@@ -188,7 +188,7 @@ class GAUSSFLUIDS_OT_render_dataset(bpy.types.Operator):
     def command(self):
         """The render script of render_data/ in a fresh Blender: this Blender's binary with -b, or
         this Python when Blender runs as the bpy module."""
-        from .gf_core.io import read_sim
+        from .gf_core.formats.hdf5 import read_sim
         from .render_data import render_dataset as rd
 
         sim_path = bpy.path.abspath(self.sim)

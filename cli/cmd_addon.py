@@ -1,7 +1,7 @@
 """``gf-cli addon build``: the installable Blender extension zip.
 
 The zip holds blender_addon/ (manifest, operators, panel, handlers), the toolkit's torch-free
-modules it shares with the rest of the toolkit (gf_core: errors, io, decoder_np, caches; render_data:
+modules it shares with the rest of the toolkit (gf_core: errors and the formats package whole; render_data:
 scene_builder, render_dataset -- one implementation, copied at build time), and h5py wheels for
 each platform asked for and each Python Blender ships (CPython 3.11: Blender 4.5 - 5.0; 3.13:
 5.1 on), downloaded from PyPI into a cache once. Blender installs the wheel that matches the
@@ -26,7 +26,8 @@ PLATFORMS = {
     "macos-x64": [f"macosx_10_{v}_x86_64" for v in (9, 13, 15)] + [f"macosx_{v}_0_x86_64" for v in (11, 12, 13, 14, 15)],
     "windows-x64": ["win_amd64"],
 }
-SHARED = {"gf_core": ["__init__.py", "errors.py", "io.py", "decoder_np.py", "caches.py"],
+# files of the toolkit the extension carries; a name ending in / is a whole package
+SHARED = {"gf_core": ["__init__.py", "errors.py", "formats/"],
           "render_data": ["__init__.py", "scene_builder.py", "render_dataset.py"]}
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -109,7 +110,7 @@ def addon_version() -> str:
 
 def build(out: Path, platforms: list[str], cache: Path) -> Path:
     """Write the zip; returns its path. Fails before writing anything if a wheel is missing."""
-    from gf_core.io import atomic_path
+    from gf_core.formats.hdf5 import atomic_path
 
     wheels = [fetch_wheel(cache, p, py) for p in platforms for py in PYTHONS]
     out = Path(out)
@@ -119,11 +120,11 @@ def build(out: Path, platforms: list[str], cache: Path) -> Path:
         files[f.name] = f
     for pkg, names in SHARED.items():
         for n in names:
-            src = ROOT / pkg / n
-            text = src.read_text()
-            if re.search(r"^\s*(import torch|from torch)", text, re.M):
-                raise RuntimeError(f"{src} imports torch and cannot go into the Blender extension")
-            files[f"{pkg}/{n}"] = src
+            for src in (sorted((ROOT / pkg / n).glob("*.py")) if n.endswith("/") else [ROOT / pkg / n]):
+                text = src.read_text()
+                if re.search(r"^\s*(import torch|from torch)", text, re.M):
+                    raise RuntimeError(f"{src} imports torch and cannot go into the Blender extension")
+                files[src.relative_to(ROOT).as_posix()] = src
     with atomic_path(target) as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as z:
             z.writestr("blender_manifest.toml", manifest_text(platforms, [w.name for w in wheels]))

@@ -146,7 +146,7 @@ def register(sub):
 def run_render(args) -> int:
     from gf_core.bench.common import machine, table
     from gf_core.bench.render_bench import bench_render
-    from gf_core.io import atomic_write_text
+    from gf_core.formats.hdf5 import atomic_write_text
 
     from gf_core.errors import InputError
 
@@ -182,16 +182,17 @@ def run_render(args) -> int:
 def run_sim(args) -> int:
     from gf_core.bench.common import machine, table
     from gf_core.bench.sim_bench import bench_sim, plot
-    from gf_core.io import atomic_write_text
+    from gf_core.formats.hdf5 import atomic_write_text
 
     from gf_core.errors import InputError
 
     from .cmd_reconstruct import check_device
 
     solvers = [s for s in args.solvers.split(",") if s]
+    from gf_core.sim.solvers import solver
+
     for s in solvers:
-        if s not in ("dfsph", "pbf"):
-            raise InputError("--solvers", f"unknown solver {s!r} (dfsph, pbf)")
+        solver(s, "--solvers")
     counts = _ints(args.particles)
     if not args.seconds > 0:
         raise InputError("--seconds", f"must be a positive number, got {args.seconds}")
@@ -262,8 +263,8 @@ def run_reconstruct(args) -> int:
     from gf_core.bench.common import machine, table
     from gf_core.bench.recon_bench import bench_reconstruct, plot, plot_per_frame
     from gf_core.errors import InputError
-    from gf_core.io import atomic_write_text
-    from gf_core.recon_config import make_config
+    from gf_core.formats.hdf5 import atomic_write_text
+    from gf_core.recon.config import make_config
 
     from .cmd_reconstruct import check_device
     from .cmd_render_dataset import parse_frames
@@ -314,7 +315,7 @@ def run_gpu(args) -> int:
     from gf_core.bench.common import machine
     from gf_core.bench.gpu_bench import bench_density, bench_renderer
     from gf_core.errors import InputError
-    from gf_core.io import atomic_write_text
+    from gf_core.formats.hdf5 import atomic_write_text
 
     if not torch.cuda.is_available():
         raise InputError("gf-cli bench gpu", "needs a CUDA GPU, and torch sees none")
@@ -335,7 +336,7 @@ def run_gpu(args) -> int:
 def run_decoder(args) -> int:
     from gf_core.bench.common import machine, table
     from gf_core.bench.decoder_bench import bench_decoder
-    from gf_core.io import atomic_write_text
+    from gf_core.formats.hdf5 import atomic_write_text
 
     counts = _ints(args.particles)
     _check_common(args)
@@ -351,7 +352,7 @@ def run_decoder(args) -> int:
 def run_scenes(args) -> int:
     from gf_core.bench.common import machine, table
     from gf_core.bench.scene_bench import COLUMNS, bench_scenes, load_suite, plot_scenes, table_rows
-    from gf_core.io import atomic_write_text
+    from gf_core.formats.hdf5 import atomic_write_text
 
     _check_common(args, out_is_file=False)
     only = [x.strip() for x in args.only.split(",") if x.strip()] if args.only else None

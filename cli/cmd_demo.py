@@ -99,7 +99,7 @@ class Demo:
                 "report": [self.out / "report.html"]}[stage]
 
     def save(self):
-        from gf_core.io import atomic_write_text
+        from gf_core.formats.hdf5 import atomic_write_text
 
         atomic_write_text(self.state_file, json.dumps({"settings": self.settings, "done": self.done}, indent=1))
 
@@ -169,7 +169,7 @@ def run(args) -> int:
     def simulate():
         gf("simulate", "water_sphere", "--out", d.sim, "--particles", z.particles, "--fps", z.fps,
            "--seconds", z.seconds)
-        from gf_core.io import read_sim
+        from gf_core.formats.hdf5 import read_sim
 
         s = read_sim(d.sim)
         return {"particles": s.num_particles, "frames": s.num_frames,
@@ -188,7 +188,7 @@ def run(args) -> int:
         gf("reconstruct", d.dataset, "--out", d.run_dir, "--frames", f"0:{z.train_frames}", "--config", cfg,
            "--iterations", z.iterations, "--init-particles", z.init_particles, "--max-particles", z.max_particles,
            "--device", args.device, "--force", *extra)
-        from gf_core.io import read_recon
+        from gf_core.formats.hdf5 import read_recon
 
         m = read_recon(d.run_dir / "recon.h5").metrics
         return {"particles": m["particles"], "iterations": m["iterations"], "wall_s": round(m["wall_s"], 1)}
@@ -215,7 +215,7 @@ def run(args) -> int:
     def edit():
         gf("edit", d.run_dir, "--at", t_last, "--remove-fraction", 0.5, "--frames", z.predict_frames, "--fps", z.fps,
            "--out", d.pred_dir / "edit.h5", "--quiet")
-        from gf_core.io import read_sim
+        from gf_core.formats.hdf5 import read_sim
 
         e = read_sim(d.pred_dir / "edit.h5")
         return {"particles": e.num_particles, "frames": e.num_frames - 1}

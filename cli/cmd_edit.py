@@ -43,7 +43,8 @@ def _box(vals, flag):
 def run(args) -> int:
     import math
 
-    from gf_core import predict as P
+    from gf_core.downstream import edit as E
+    from gf_core.downstream import predict as P
     from gf_core.errors import InputError
 
     if all(v is None for v in (args.remove_fraction, args.remove_box, args.remove_sphere, args.translate,
@@ -64,15 +65,15 @@ def run(args) -> int:
     recon, _, s, fps = load_state(args)
     s = P.keep_rest_state(s, args.solver)  # the particles keep their mass whatever is removed or added
     if args.remove_fraction is not None:
-        s = P.remove_fraction(s, args.remove_fraction, seed=args.seed)
+        s = E.remove_fraction(s, args.remove_fraction, seed=args.seed)
     if "--remove-box" in boxes:
-        s = P.remove_box(s, *boxes["--remove-box"])
+        s = E.remove_box(s, *boxes["--remove-box"])
     if args.remove_sphere:
-        s = P.remove_sphere(s, args.remove_sphere[:3], args.remove_sphere[3])
+        s = E.remove_sphere(s, args.remove_sphere[:3], args.remove_sphere[3])
     if args.translate:
-        s = P.translate(s, args.translate)
+        s = E.translate(s, args.translate)
     if "--add-box" in boxes:
-        s = P.add_box(s, *boxes["--add-box"], P.rest_state(s, args.solver)[0], velocity=args.add_velocity)
+        s = E.add_box(s, *boxes["--add-box"], P.rest_state(s, args.solver)[0], velocity=args.add_velocity)
     for e in s.edits:
         print("edit:", ", ".join(f"{k} {v}" for k, v in e.items()))
     return simulate_state(args, recon, s, fps, "edit")

@@ -37,8 +37,8 @@ def register(sub):
 def run(args) -> int:
     from gf_core.data import load_dataset
     from gf_core.errors import InputError
-    from gf_core.evaluate import evaluate, evaluate_continuation
-    from gf_core.io import SIM_FORMAT, file_format, read_recon, read_sim
+    from gf_core.eval.evaluate import evaluate, evaluate_continuation
+    from gf_core.formats.hdf5 import SIM_FORMAT, file_format, read_recon, read_sim
 
     from .cmd_reconstruct import check_device
 

@@ -56,10 +56,10 @@ def check_options(args) -> None:
 
 
 def run(args) -> int:
-    from gf_core import export as ex
-    from gf_core.decoder_np import ParticleAnimation
+    from gf_core.downstream import export as ex
+    from gf_core.formats.decoder_np import ParticleAnimation
     from gf_core.errors import InputError
-    from gf_core.io import read_recon
+    from gf_core.formats.hdf5 import read_recon
 
     from .cmd_render_dataset import parse_frames
 

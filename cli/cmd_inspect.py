@@ -41,7 +41,7 @@ def summarise(path: Path, args) -> dict:
                 "channels": ds.channels, "resolution": [first.width, first.height],
                 "ground_truth": str(ds.gt_file) if ds.gt_file else None}
         if ds.gt_file is not None:  # the ground truth is read and validated, not only found
-            from gf_core.io import read_sim
+            from gf_core.formats.hdf5 import read_sim
 
             gt = read_sim(ds.gt_file)
             info["ground_truth"] = f"{ds.gt_file} ({gt.num_particles} particles, {gt.num_frames} frames)"
@@ -59,7 +59,7 @@ def summarise(path: Path, args) -> dict:
     import h5py
 
     from gf_core.errors import FormatError
-    from gf_core.io import RECON_FORMAT, SIM_FORMAT, file_format, read_recon, read_sim
+    from gf_core.formats.hdf5 import RECON_FORMAT, SIM_FORMAT, file_format, read_recon, read_sim
 
     try:
         with h5py.File(path, "r"):

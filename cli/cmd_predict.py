@@ -8,6 +8,8 @@ from pathlib import Path
 
 
 def add_continuation_options(p) -> None:
+    from gf_core.sim import SOLVERS
+
     p.add_argument("run", type=Path, help="run folder (holding recon.h5) or a recon.h5 file")
     p.add_argument("--out", type=Path, required=True, help="output sim.h5 (render it with render-dataset, "
                                                            "the Blender extension, or gf-cli evaluate)")
@@ -16,7 +18,7 @@ def add_continuation_options(p) -> None:
     p.add_argument("--frames", type=int, default=40, help="frames to simulate (default 40)")
     p.add_argument("--fps", type=float, default=None,
                    help="frame rate of the continuation (default: the dataset's, else 30)")
-    p.add_argument("--solver", choices=["pbf", "dfsph"], default="pbf",
+    p.add_argument("--solver", choices=list(SOLVERS), default="pbf",
                    help="particle solver (default pbf, as in the paper)")
     p.add_argument("--rest-density", type=float, default=1000.0,
                    help="kg/m^3, for the particles' mass and energies (default 1000, water)")
@@ -30,8 +32,8 @@ def add_continuation_options(p) -> None:
 
 def load_state(args):
     from gf_core.errors import InputError
-    from gf_core.io import read_recon
-    from gf_core.predict import state_at
+    from gf_core.formats.hdf5 import read_recon
+    from gf_core.downstream.predict import state_at
 
     from .cmd_reconstruct import check_device
     from .cmd_simulate import check_out_file
@@ -60,7 +62,7 @@ def load_state(args):
 
 def reconstruction_spacing(recon) -> float | None:
     """The mean particle spacing the reconstruction implies: (fluid volume / particle count)^(1/3)."""
-    from gf_core.io import read_recon
+    from gf_core.formats.hdf5 import read_recon
 
     r = read_recon(recon)
     vol = r.config.get("fluid_volume")
@@ -72,7 +74,7 @@ def simulate_state(args, recon, state, fps, command: str) -> int:
 
     from tqdm import tqdm
 
-    from gf_core.predict import continue_state
+    from gf_core.downstream.predict import continue_state
 
     bar = None
 

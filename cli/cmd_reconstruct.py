@@ -119,8 +119,8 @@ def run(args) -> int:
 
     from gf_core.data import load_dataset
     from gf_core.errors import InputError
-    from gf_core.recon_config import make_config
-    from gf_core.reconstruct import CHECKPOINT, reconstruct
+    from gf_core.recon.config import make_config
+    from gf_core.recon.trainer import CHECKPOINT, reconstruct
 
     device = check_device(args.device)
     over = {}
@@ -185,7 +185,7 @@ def run(args) -> int:
         test = test.with_times(train.times) if test is not None else None
     if device == "cpu":
         from gf_core.limits import require_memory
-        from gf_core.recon_config import training_bytes
+        from gf_core.recon.config import training_bytes
 
         require_memory("--max-particles", f"{cfg.model.max_particles} particles over {len(train.times)} frames "
                                           "(parameters, gradients, optimiser state)",

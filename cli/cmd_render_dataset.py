@@ -70,7 +70,7 @@ def script_path() -> Path:
 
 def build_command(args) -> tuple[list[str], str]:
     """(command, engine). Converts sim.h5 to .npz for a blender binary (no h5py needed there)."""
-    from gf_core.io import read_sim
+    from gf_core.formats.hdf5 import read_sim
 
     sim = read_sim(args.sim)  # validates the file before any rendering starts
     opts = []
@@ -178,7 +178,7 @@ def check_out(args) -> None:
 
 
 def run(args) -> int:
-    from gf_core.io import read_sim
+    from gf_core.formats.hdf5 import read_sim
 
     frames = check_options(args)
     sim = read_sim(args.sim)
@@ -200,7 +200,7 @@ def run(args) -> int:
         tail = "\n".join(log[-15:])
         raise GFError(f"the render process failed (exit {code}):\n{tail}")
     if engine == "blender":  # Blender's Python has no h5py: the ground-truth copy is made here
-        from gf_core.io import atomic_path
+        from gf_core.formats.hdf5 import atomic_path
 
         with atomic_path(args.out / "gt_sim.h5") as tmp:
             shutil.copyfile(args.sim, tmp)

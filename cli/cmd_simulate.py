@@ -17,7 +17,7 @@ def register(sub):
                                    f"energy). Scenes: {', '.join(SCENES)}.")
     p.add_argument("scene", choices=SCENES)
     p.add_argument("--out", type=Path, required=True, help="output sim.h5")
-    p.add_argument("--solver", choices=SOLVERS, default="dfsph", help="particle solver (default: dfsph)")
+    p.add_argument("--solver", choices=list(SOLVERS), default="dfsph", help="particle solver (default: dfsph)")
     p.add_argument("--particles", type=int, default=2000, help="approximate particle count (default 2000)")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the scene's, 60)")
     p.add_argument("--seconds", type=float, default=None, help="simulated time (default: the scene's)")

@@ -44,7 +44,7 @@ def _render(params: dict, camera, sh_degree: int, bg=(0.0, 0.0, 0.0)) -> np.ndar
 def _dots(points: np.ndarray, camera, radius: float, color, cut_towards=None) -> np.ndarray:
     """Particles as small opaque dots, shaded by depth; with ``cut_towards`` (the camera centre),
     the half of the fluid nearer the camera is removed to show the inside."""
-    from gf_core.particles import GaussianParticles
+    from gf_core.render import render_points
 
     p = np.asarray(points, np.float64)
     if cut_towards is not None and len(p):
@@ -52,9 +52,9 @@ def _dots(points: np.ndarray, camera, radius: float, color, cut_towards=None) ->
         p = p[(p - c) @ (np.asarray(cut_towards) - c) <= 0]
     if len(p) == 0:
         return np.zeros((camera.height, camera.width, 3), np.float32)
-    gp = GaussianParticles.from_positions(p.astype(np.float32), radius=radius, color=color, opacity=0.95)
     with torch.no_grad():
-        o = gp.render(camera, background=torch.ones(3))
+        o = render_points(p.astype(np.float32), camera, radius=radius, color=color, opacity=0.95,
+                          background=torch.ones(3))
     return np.clip(o.color.numpy(), 0, 1)
 
 
@@ -80,9 +80,9 @@ def write(d, t_last: float) -> Path:
     from gf_core.camera import frontal_arc
     from gf_core.data import load_dataset
     from gf_core.data.images import write_png
-    from gf_core.evaluate import continuation_appearance
-    from gf_core.io import read_recon, read_sim
-    from gf_core.model import FluidModel
+    from gf_core.eval.evaluate import continuation_appearance
+    from gf_core.formats.hdf5 import read_recon, read_sim
+    from gf_core.recon.model import FluidModel
 
     out = d.out
     rdir = out / "report"
@@ -215,7 +215,7 @@ def write(d, t_last: float) -> Path:
             "figcaption{color:#555;font-size:90%}table{border-collapse:collapse}"
             "td,th{border:1px solid #ccc;padding:4px 8px;text-align:left}</style></head><body>"
             + "\n".join(body) + "</body></html>")
-    from gf_core.io import atomic_write_text
+    from gf_core.formats.hdf5 import atomic_write_text
 
     atomic_write_text(out / "report.html", page)
     return out / "report.html"

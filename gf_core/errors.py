@@ -19,6 +19,10 @@ class GFError(Exception):
     """Base class of every error the toolkit raises on purpose."""
 
 
+class ReconstructionError(GFError):
+    """A reconstruction cannot continue (non-finite steps, a resume that does not match, ...)."""
+
+
 class InputError(GFError, ValueError):
     """Bad input: ``<where>: <problem>``. ``where`` is usually a file path."""
 

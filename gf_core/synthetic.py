@@ -16,8 +16,8 @@ import torch
 from .camera import frontal_arc
 from .data.writers import frame_entry, write_transforms
 from .data.images import write_png
-from .io import SimData, write_sim
-from .particles import GaussianParticles
+from .formats.hdf5 import SimData, write_sim
+from .render import render_points
 
 
 def falling_blob(n_side: int = 9, frames: int = 8, fps: float = 10.0, *, spacing: float = 0.05,
@@ -62,12 +62,11 @@ def splat_dataset(root, sim: SimData, *, views: int = 5, test_views: int = 1, re
             continue
         entries = []
         for f in range(sim.num_frames):
-            gp = GaussianParticles.from_positions(sim.positions[f], radius=radius_factor * sim.particle_radius,
-                                                  color=color if frame_colors is None else tuple(frame_colors[f]),
-                                                  opacity=opacity)
+            look = dict(radius=radius_factor * sim.particle_radius, opacity=opacity,
+                        color=color if frame_colors is None else tuple(frame_colors[f]))
             for k, cam in enumerate(cams):
                 with torch.no_grad():
-                    o = gp.render(cam, background=torch.zeros(3))
+                    o = render_points(sim.positions[f], cam, background=torch.zeros(3), **look)
                 # straight (un-premultiplied) colour with alpha, as Blender writes RGBA
                 a = o.alpha.clamp(0, 1)
                 rgb = torch.where(a[..., None] > 1e-6, o.color / a[..., None].clamp_min(1e-6), torch.zeros_like(o.color))

@@ -202,7 +202,7 @@ def check_resume(out: Path, ident: dict, force: bool) -> bool:
 
 def particles_npz(sim, sim_path, out: Path) -> tuple[Path, str]:
     """Hand a simulation to a Python without h5py (a Blender binary): write OUT/.gf_particles.npz
-    from ``sim`` (a validated ``gf_core.io.SimData``) and return it with the sha256 of ``sim_path``,
+    from ``sim`` (a validated ``gf_core.formats.hdf5.SimData``) and return it with the sha256 of ``sim_path``,
     which the render script records as the dataset's source (``--source-hash``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

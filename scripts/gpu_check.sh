@@ -40,11 +40,11 @@ if ls .whl/gsplat-*.whl >/dev/null 2>&1; then
 fi
 
 stamp "building the native extension (CPU + CUDA)"
-$PY -c "from gf_core.render import native; assert native.load() is not None; print('has_cuda', native.has_cuda())" \
+$PY -c "from gf_core import native; assert native.load() is not None; print('has_cuda', native.has_cuda())" \
   2>&1 | tail -30 || { stamp "BUILD FAILED"; exit 1; }
 if [ -z "${SKIP_TESTS:-}" ]; then
   stamp "gpu tests"
-  timeout 300 $PY -m pytest -q -m gpu -p no:cacheprovider tests/test_gpu.py 2>&1 | tee "$OUT/pytest_gpu.log" | tail -25
+  timeout 300 $PY -m pytest -q -m gpu -p no:cacheprovider tests/native/test_gpu.py 2>&1 | tee "$OUT/pytest_gpu.log" | tail -25
 fi
 stamp "K-nearest SPH density and renderer timings"
 if [ -n "${GS_PID:-}" ]; then wait $GS_PID; tail -3 "$OUT/gsplat_build.log"; export PYTHONPATH=/tmp/gs:$PYTHONPATH; fi

@@ -16,9 +16,9 @@ from scipy.spatial import cKDTree
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from gf_core.io import read_recon, read_sim  # noqa: E402
-from gf_core.metrics import nearest_distance  # noqa: E402
-from gf_core.model import FluidModel  # noqa: E402
+from gf_core.formats.hdf5 import read_recon, read_sim  # noqa: E402
+from gf_core.eval.metrics import nearest_distance  # noqa: E402
+from gf_core.recon.model import FluidModel  # noqa: E402
 
 model = FluidModel.from_recon(read_recon(sys.argv[1]))
 sim = read_sim(f"{sys.argv[2]}/gt_sim.h5")

@@ -24,8 +24,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gf_core.data import load_dataset  # noqa: E402
-from gf_core.recon_config import make_config  # noqa: E402
-from gf_core.reconstruct import Plateau, Trainer  # noqa: E402
+from gf_core.recon.config import make_config  # noqa: E402
+from gf_core.recon.schedule import Plateau  # noqa: E402
+from gf_core.recon.trainer import Trainer  # noqa: E402
 
 
 def main() -> None:

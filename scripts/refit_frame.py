@@ -20,12 +20,12 @@ import sys
 import numpy as np
 import torch
 
-from gf_core import losses as L
 from gf_core.data import load_dataset
-from gf_core.io import read_recon
-from gf_core.model import FluidModel
-from gf_core.recon_config import make_config
-from gf_core.reconstruct import composite, load_images
+from gf_core.formats.hdf5 import read_recon
+from gf_core.recon.model import FluidModel
+from gf_core.recon.config import make_config
+from gf_core.recon.terms.image import d_ssim, l1, psnr as image_psnr
+from gf_core.recon.views import composite, load_views
 from gf_core.render import render
 
 
@@ -35,7 +35,8 @@ def trainer_steps(recon, dataset, when, iters, overrides):
     import tomllib
     from pathlib import Path
 
-    from gf_core.reconstruct import Plateau, Trainer
+    from gf_core.recon.schedule import Plateau
+    from gf_core.recon.trainer import Trainer
 
     over: dict = {}
     for a in overrides:
@@ -48,32 +49,32 @@ def trainer_steps(recon, dataset, when, iters, overrides):
                  out=Path(tempfile.mkdtemp()), log=lambda *_: None)
     tr.initialise()
     tr.model = FluidModel.from_recon(r)
-    tr.spacing, tr.h = float(r.config.get("spacing", tr.spacing)), float(r.config.get("h", tr.h))
+    tr.ctx.spacing, tr.ctx.h = float(r.config.get("spacing", tr.spacing)), float(r.config.get("h", tr.h))
     tr._make_optimizer()
     tr.phase, tr.plateau = 3, Plateau(10 ** 9, 0.0)
-    t = float(tr.train.unique_times[np.argmin(np.abs(tr.train.unique_times - when))])
-    tr.sample_times = lambda progress: [t] * cfg.train.times_per_step
+    t = float(tr.views.unique_times[np.argmin(np.abs(tr.views.unique_times - when))])
+    tr.sampler.times = lambda phase, window: [t] * cfg.train.times_per_step
 
     def psnr(imgs):
         with torch.no_grad():
             p = tr.model.at(t)
-            return np.mean([L.psnr(render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"],
+            return np.mean([image_psnr(render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"],
                                           imgs.cameras[i], imgs.background, sh_degree=tr.model.sh_degree).color,
                                    composite(imgs.images[i], imgs.alphas[i], imgs.background))
                             for i in imgs.at_time(t)])
 
-    print(f"t = {t:.4f} s, the trainer's phase-3 step {' '.join(overrides)}; start: train {psnr(tr.train):.2f} dB, "
+    print(f"t = {t:.4f} s, the trainer's phase-3 step {' '.join(overrides)}; start: train {psnr(tr.views):.2f} dB, "
           f"held-out {psnr(tr.test):.2f} dB")
     for it in range(1, iters + 1):
         tr.step(1.0, 1.0)
         if it % max(iters // 4, 1) == 0:
-            print(f"{it:5d} steps: train {psnr(tr.train):.2f} dB, held-out {psnr(tr.test):.2f} dB")
+            print(f"{it:5d} steps: train {psnr(tr.views):.2f} dB, held-out {psnr(tr.test):.2f} dB")
 
 
 def main(recon, dataset, when, groups, iters):
     m = FluidModel.from_recon(read_recon(recon))
-    train = load_images(load_dataset(dataset), "cpu")
-    test = load_images(load_dataset(dataset, split="test"), "cpu")
+    train = load_views(load_dataset(dataset), "cpu")
+    test = load_views(load_dataset(dataset, split="test"), "cpu")
     t = float(train.unique_times[np.argmin(np.abs(train.unique_times - when))])
     with torch.no_grad():
         p = m.at(t)
@@ -92,7 +93,7 @@ def main(recon, dataset, when, groups, iters):
 
     def psnr(imgs):
         with torch.no_grad():
-            return np.mean([L.psnr(draw(imgs, i, imgs.background), composite(imgs.images[i], imgs.alphas[i],
+            return np.mean([image_psnr(draw(imgs, i, imgs.background), composite(imgs.images[i], imgs.alphas[i],
                                                                                imgs.background))
                             for i in imgs.at_time(t)])
 
@@ -105,7 +106,7 @@ def main(recon, dataset, when, groups, iters):
         for i in rng.choice(views, min(2, len(views)), replace=False):
             target = composite(train.images[i], train.alphas[i], bg)
             out = draw(train, i, bg)
-            loss = loss + 0.8 * L.l1(out, target) + 0.2 * L.d_ssim(out, target)
+            loss = loss + 0.8 * l1(out, target) + 0.2 * d_ssim(out, target)
         opt.zero_grad()
         loss.backward()
         opt.step()

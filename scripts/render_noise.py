@@ -28,7 +28,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gf_core.data import load_dataset  # noqa: E402
-from gf_core.evaluate import composited  # noqa: E402
+from gf_core.eval.evaluate import composited  # noqa: E402
 
 
 def split_psnr(a_root: str, b_root: str, split: str) -> dict:

@@ -4,10 +4,10 @@
     python scripts/splash_views.py RUN/recon.h5 DATASET OUT.png
 """
 import sys, torch, numpy as np
-from gf_core.io import read_recon
-from gf_core.model import FluidModel
+from gf_core.formats.hdf5 import read_recon
+from gf_core.recon.model import FluidModel
 from gf_core.data import load_dataset
-from gf_core.reconstruct import load_images, composite
+from gf_core.recon.trainer import load_images, composite
 from gf_core.render import render
 from PIL import Image
 m = FluidModel.from_recon(read_recon(sys.argv[1]))

@@ -13,8 +13,8 @@ import sys
 import numpy as np
 import torch
 
-from gf_core.io import read_recon
-from gf_core.model import FluidModel
+from gf_core.formats.hdf5 import read_recon
+from gf_core.recon.model import FluidModel
 
 for path in sys.argv[1:]:
     r = read_recon(path)

@@ -1,12 +1,12 @@
-"""The numpy decoder (``gf_core.decoder_np``, the Blender extension's) against the torch one."""
+"""The numpy decoder (``gf_core.formats.decoder_np``, the Blender extension's) against the torch one."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from ..decoder_np import NumpyDecoder
-from ..temporal import Decoder, DecoderConfig
+from ..formats.decoder_np import NumpyDecoder
+from ..recon.decoder import Decoder, DecoderConfig
 from .common import median_time
 
 

@@ -14,8 +14,9 @@ import math
 
 import torch
 
-from ..losses import density_uniformity, sph_density_knn
-from ..neighbors import knn
+from ..recon.terms.density import density_uniformity
+from ..sph.density import sph_density_knn
+from ..sph.neighbors import knn
 from ..render import render
 from ..render.constants import TILE_SIZE, TILE_SIZE_CUDA
 from .common import median_time

@@ -36,9 +36,9 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
     > 0): each run stops at it instead of at its iterations; per frame, the frames share it
     equally (the same total time as one reconstruction of the clip)."""
     from ..data import load_dataset
-    from ..evaluate import evaluate, read_metrics
-    from ..recon_config import make_config
-    from ..reconstruct import reconstruct
+    from ..eval.evaluate import evaluate, read_metrics
+    from ..recon.config import make_config
+    from ..recon.trainer import reconstruct
 
     def quiet(*a, **k):
         pass

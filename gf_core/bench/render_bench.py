@@ -13,7 +13,8 @@ from __future__ import annotations
 import torch
 
 from ..camera import Camera
-from ..render import native, render
+from .. import native
+from ..render import render
 from .common import median_time
 
 

@@ -148,7 +148,7 @@ def per_frame_fit(name: str, spec: dict, ds: Path, work: Path, log=print) -> dic
     out = work / name / "per_frame"
     res = out / "bench_reconstruct.json"
     if not res.exists():
-        from ..recon_config import make_config
+        from ..recon.config import make_config
 
         n = make_config(spec["preset"]).model.max_particles
         _gf(["bench", "reconstruct", ds, "--per-frame", "--preset", spec["preset"], "--iterations", 1_000_000,

@@ -98,8 +98,8 @@ def bench_neighbours(n: int = 50000, k: int = 64, repeats: int = 7, log=print) -
 
     import torch
 
-    from ..neighbors import knn, knn_torch, neighbor_lists, neighbor_pairs_torch
-    from ..render import native
+    from ..sph.neighbors import knn, knn_torch, neighbor_lists, neighbor_pairs_torch
+    from .. import native
     from .common import median_time
 
     side = math.ceil(n ** (1 / 3))
@@ -140,8 +140,8 @@ def bench_prediction(solvers, particles: int, *, scene: str = "water_sphere", st
     the wall-clock seconds spent so far."""
     import time
 
-    from ..metrics import particle_error
-    from ..predict import State, continue_state
+    from ..eval.metrics import particle_error
+    from ..downstream.predict import State, continue_state
 
     ref_label, ref_settings = SWEEPS["dfsph"][-1]
     ref, _ = simulate(scene, solver="dfsph", particles=particles, fps=fps, seconds=(start_frame + frames) / fps,

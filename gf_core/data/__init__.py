@@ -1,4 +1,5 @@
-"""Dataset loaders. ``load_dataset(path)`` detects the layout:
+"""Dataset loaders. ``load_dataset(path)`` detects the layout (``LAYOUTS``, a registry: a new layout
+is a module of this package and one entry there):
 
 - ``nerf``: ``path/transforms_{split}.json`` (NeRF / D-NeRF, per-frame ``time``)
 - ``neurofluid``: ``path/view_k/transforms_{split}.json``
@@ -13,29 +14,57 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import InputError
-from .dataset import FluidDataset, FrameRecord, Sample
-from .colmap import load_colmap, model_folder
-from .nerf import load_nerf, load_neurofluid
-from .video import load_video, write_video
+from dataclasses import dataclass
+from typing import Callable
 
-LAYOUTS = ("nerf", "neurofluid", "video", "colmap")
+from ..errors import InputError
+from .colmap import load_colmap, model_folder
+from .dataset import FluidDataset, FrameRecord, Sample
+from .nerf import load_nerf, load_neurofluid
+from .video import load_video
+from .videos import write_video
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A dataset layout: how to recognise it in a folder and how to load one split of it."""
+
+    looks_for: str                                       # what ``detect`` looks for (error messages)
+    detect: Callable[[Path, str], bool]                  # (folder, split) -> is it this layout
+    load: Callable[..., FluidDataset]                    # (folder, split, fps=, grayscale=, background_removal=)
+
+
+def _neurofluid(path, split, *, fps, grayscale, background_removal):
+    ds = load_neurofluid(path, split, fps=fps, grayscale=grayscale)
+    ds.background_removal = background_removal
+    return ds
+
+
+# the known layouts, in the order detection tries them
+LAYOUTS: dict[str, Layout] = {
+    "nerf": Layout("transforms_{split}.json", lambda p, s: (p / f"transforms_{s}.json").exists(),
+                   lambda p, s, *, fps, grayscale, background_removal:
+                   load_nerf(p, s, grayscale=grayscale, background_removal=background_removal)),
+    "neurofluid": Layout("view_*/transforms_{split}.json", lambda p, s: any(p.glob(f"view_*/transforms_{s}.json")),
+                         _neurofluid),
+    "video": Layout("cameras.json", lambda p, s: (p / "cameras.json").exists(),
+                    lambda p, s, *, fps, grayscale, background_removal:
+                    load_video(p, grayscale=grayscale, background_removal=background_removal)),
+    "colmap": Layout("a COLMAP sparse/0/", lambda p, s: model_folder(p) is not None,
+                     lambda p, s, *, fps, grayscale, background_removal:
+                     load_colmap(p, fps=fps, grayscale=grayscale, background_removal=background_removal)),
+}
 
 
 def detect_layout(path: Path, split: str = "train") -> str:
     path = Path(path)
     if not path.is_dir():
         raise InputError(path, "dataset folder does not exist")
-    if (path / f"transforms_{split}.json").exists():
-        return "nerf"
-    if any(path.glob(f"view_*/transforms_{split}.json")):
-        return "neurofluid"
-    if (path / "cameras.json").exists():
-        return "video"
-    if model_folder(path) is not None:
-        return "colmap"
-    raise InputError(path, f"no known dataset layout (looked for transforms_{split}.json, "
-                           f"view_*/transforms_{split}.json, cameras.json, a COLMAP sparse/0/)")
+    for name, lay in LAYOUTS.items():
+        if lay.detect(path, split):
+            return name
+    raise InputError(path, "no known dataset layout (looked for "
+                           + ", ".join(lay.looks_for.format(split=split) for lay in LAYOUTS.values()) + ")")
 
 
 def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale: bool = False,
@@ -52,17 +81,9 @@ def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale:
             raise InputError(path, f"--{name} must be a positive number, got {v!r}")
     if layout == "auto":
         layout = detect_layout(path, split)
-    if layout == "nerf":
-        ds = load_nerf(path, split, grayscale=grayscale, background_removal=background_removal)
-    elif layout == "neurofluid":
-        ds = load_neurofluid(path, split, fps=fps, grayscale=grayscale)
-        ds.background_removal = background_removal
-    elif layout == "video":
-        ds = load_video(path, grayscale=grayscale, background_removal=background_removal)
-    elif layout == "colmap":
-        ds = load_colmap(path, fps=fps, grayscale=grayscale, background_removal=background_removal)
-    else:
+    if layout not in LAYOUTS:
         raise ValueError(f"unknown dataset layout {layout!r}; choose from auto, {', '.join(LAYOUTS)}")
+    ds = LAYOUTS[layout].load(path, split, fps=fps, grayscale=grayscale, background_removal=background_removal)
     return to_seconds(ds, fps=fps, duration=duration)
 
 

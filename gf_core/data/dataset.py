@@ -140,7 +140,7 @@ class FluidDataset:
         """The ground-truth particles (``SimData``) if the dataset carries them, else None."""
         if self.gt_file is None:
             return None
-        from ..io import read_sim
+        from ..formats.hdf5 import read_sim
 
         return read_sim(self.gt_file)
 
@@ -184,7 +184,7 @@ class FluidDataset:
 
     def _video(self, path: Path):
         """An open reader per video file (a few at a time: each holds a decoder)."""
-        from .video import VideoReader
+        from .videos import VideoReader
 
         readers = self.__dict__.setdefault("_readers", OrderedDict())
         r = readers.get(path)

@@ -15,62 +15,19 @@ transform_matrix share a view, numbered in order of first appearance.
 
 from __future__ import annotations
 
-import json
-import math
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
-from ..errors import InputError, short_repr
+from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord
 from .distortion import from_keys as distortion_from_keys
+from .fields import background, intrinsics, matrix_value, number, path_value, read_json, view_id
 from .images import image_size
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp")
-
-
-def read_json(path: Path) -> dict:
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "file does not exist")
-    try:
-        with open(path, encoding="utf-8") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as e:
-        raise InputError(path, f"malformed JSON: {e}") from None
-    except UnicodeDecodeError as e:
-        raise InputError(path, f"not UTF-8 text (JSON must be UTF-8): byte {e.start} cannot be decoded") from None
-    except RecursionError:
-        raise InputError(path, "JSON nested too deeply to be a dataset description") from None
-    if not isinstance(data, dict):
-        raise InputError(path, "expected a JSON object at the top level")
-    return data
-
-
-def path_value(d: dict, key: str, json_path: Path, where: str) -> str | None:
-    """``d[key]`` as a file path (a non-empty string), None when absent or null."""
-    v = d.get(key)
-    if v is None:
-        return None
-    if not isinstance(v, str) or not v:
-        raise InputError(json_path, f"{where}: {key!r} must be a file path (a non-empty string), got {short_repr(v)}")
-    return v
-
-
-def matrix_value(v, json_path: Path, where: str, key: str, shapes=((4, 4), (3, 4))) -> np.ndarray:
-    """A JSON matrix as float64 of one of ``shapes``, finite, else one line naming the key."""
-    want = " or ".join(f"{r}x{c}" for r, c in shapes)
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError, OverflowError):
-        a = None
-    if a is None or a.shape not in shapes:
-        raise InputError(json_path, f"{where}: {key!r} must be a {want} matrix of numbers, got {short_repr(v)}")
-    if not np.all(np.isfinite(a)):
-        raise InputError(json_path, f"{where}: {key!r} contains NaN or infinite values")
-    return a
 
 
 def resolve_image(root: Path, file_path: str, json_path: Path, what: str = "image") -> Path:
@@ -83,44 +40,6 @@ def resolve_image(root: Path, file_path: str, json_path: Path, what: str = "imag
             if q.exists():
                 return q
     raise InputError(p, f"{what} listed in {json_path} does not exist")
-
-
-def _num(d: dict, key: str, json_path: Path, where: str):
-    v = d.get(key)
-    if v is None:
-        return None
-    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-        raise InputError(json_path, f"{where}: {key!r} must be a finite number, got {v!r}")
-    return float(v)
-
-
-VIEW_KEYS = ("view_id", "view", "camera_id")
-
-
-def view_id(entry: dict, json_path: Path, where: str, default: int | None = None) -> int | None:
-    """A frame's or camera's view id from ``view_id``, ``view`` or ``camera_id`` (an integer)."""
-    key = next((k for k in VIEW_KEYS if k in entry), None)
-    if key is None:
-        return default
-    raw = entry[key]
-    if isinstance(raw, bool) or not isinstance(raw, (int, float, str)) or not str(raw).strip().lstrip("-").isdigit():
-        raise InputError(json_path, f"{where}: {key!r} must be an integer, got {raw!r}")
-    return int(str(raw).strip())
-
-
-def intrinsics(d: dict, json_path: Path, where: str):
-    """(fl_x, fl_y, camera_angle_x, camera_angle_y, cx, cy) from a transforms frame or a camera
-    entry, each None when absent, validated the same way for every layout."""
-    fx, fy = _num(d, "fl_x", json_path, where), _num(d, "fl_y", json_path, where)
-    angle, angle_y = _num(d, "camera_angle_x", json_path, where), _num(d, "camera_angle_y", json_path, where)
-    if fx is None and fy is None and angle is None and angle_y is None:
-        raise InputError(json_path, f"{where}: no focal length (need 'camera_angle_x' or 'fl_x')")
-    if (fx is not None and fx <= 0) or (fy is not None and fy <= 0):
-        raise InputError(json_path, f"{where}: focal length must be positive (fl_x={fx}, fl_y={fy})")
-    for name, a in (("camera_angle_x", angle), ("camera_angle_y", angle_y)):
-        if a is not None and not 0 < a < math.pi:
-            raise InputError(json_path, f"{where}: {name} must be a field of view in (0, pi) radians, got {a}")
-    return fx, fy, angle, angle_y, _num(d, "cx", json_path, where), _num(d, "cy", json_path, where)
 
 
 def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int | None = None,
@@ -137,7 +56,7 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise InputError(json_path, "has no 'frames' list (or it is empty)")
-    fps = _num(meta, "fps", json_path, "top level") or fps
+    fps = number(meta, "fps", json_path, "top level") or fps
     with_s = sum(isinstance(fr, dict) and "time_s" in fr for fr in frames)
     if 0 < with_s < len(frames):
         raise InputError(json_path, f"{with_s} of its {len(frames)} frames carry 'time_s' (seconds): give it for "
@@ -158,7 +77,7 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
             raise InputError(json_path, f"{where}: 'file_path' is null")
         img = resolve_image(root, file_path, json_path)
         merged = {**meta, **fr}
-        w, h = _num(merged, "w", json_path, where), _num(merged, "h", json_path, where)
+        w, h = number(merged, "w", json_path, where), number(merged, "h", json_path, where)
         size = image_size(img) if (check_sizes or w is None or h is None) else None
         if w is None or h is None:
             if size is None:
@@ -177,9 +96,9 @@ def parse_transforms(json_path: Path, *, view_offset: int = 0, fixed_view: int |
                                       name=str(fr.get("camera_name", "")))
         except InputError as e:
             raise InputError(json_path, f"{where}: {e.problem}") from None
-        t = _num(fr, "time_s" if with_s else "time", json_path, where)
+        t = number(fr, "time_s" if with_s else "time", json_path, where)
         if t is None:
-            fidx = _num(fr, "frame", json_path, where)
+            fidx = number(fr, "frame", json_path, where)
             if fidx is not None and fps:
                 t = fidx / fps
             elif time_from_index and fps:
@@ -216,16 +135,6 @@ def _gt_file(root: Path, meta: dict, json_path: Path) -> Path | None:
     return p if p.exists() else None
 
 
-def _background(meta: dict, channels: int, json_path: Path | str = "dataset") -> tuple:
-    bg = meta.get("background", [0.0, 0.0, 0.0])
-    vals = [bg] if isinstance(bg, (int, float)) and not isinstance(bg, bool) else bg
-    if not isinstance(vals, list) or len(vals) not in (1, 3) or \
-            any(isinstance(x, bool) or not isinstance(x, (int, float)) or not 0 <= x <= 1 for x in vals):
-        raise InputError(json_path, f"'background' must be a colour: a number or 3 numbers in [0, 1], got {short_repr(bg)}")
-    vals = [float(x) for x in vals] * (3 if len(vals) == 1 else 1)
-    return tuple(vals[:channels]) if channels == 1 else tuple(vals[:3])
-
-
 TIME_UNITS = ("seconds", "normalized")
 
 
@@ -245,7 +154,7 @@ def dataset_meta(meta: dict, json_path: Path) -> dict:
                                         f"got {box.tolist()}")
         out["scene_box"] = a.tolist()
     if "floor" in meta:
-        z = _num(meta, "floor", json_path, "top level")
+        z = number(meta, "floor", json_path, "top level")
         if z is None:
             raise InputError(json_path, f"'floor' must be a finite number (the floor's height, metres), got {meta['floor']!r}")
         out["floor"] = z
@@ -258,7 +167,7 @@ def dataset_meta(meta: dict, json_path: Path) -> dict:
     if "time_source" in meta:
         out["time_source"] = str(meta["time_source"])
     for k in ("fps", "duration"):
-        v = _num(meta, k, json_path, "top level")
+        v = number(meta, k, json_path, "top level")
         if v is not None:
             if v <= 0:
                 raise InputError(json_path, f"'{k}' must be positive, got {v}")
@@ -287,7 +196,7 @@ def load_nerf(root, split: str = "train", *, grayscale: bool = False,
             records = [replace(r, view_id=r.view_id + offset) if r.view_id in clash else r for r in records]
     ch = 1 if grayscale else 3
     return FluidDataset(frames=records, root=root, channels=ch,
-                        background=_background(meta, ch, json_path), background_removal=background_removal,
+                        background=background(meta, ch, json_path), background_removal=background_removal,
                         gt_file=_gt_file(root, meta, json_path),
                         meta={"layout": "nerf", "split": split, **dataset_meta(meta, json_path)})
 
@@ -314,7 +223,7 @@ def load_neurofluid(root, split: str = "train", *, fps: float | None = None,
         json_path = d / f"transforms_{split}.json"
         meta = read_json(json_path)
         n = len(meta.get("frames") or [])
-        view_fps = fps or _num(meta, "fps", json_path, "top level") or max(n - 1, 1)
+        view_fps = fps or number(meta, "fps", json_path, "top level") or max(n - 1, 1)
         if view_fps <= 0:
             raise InputError(json_path, f"'fps' must be positive, got {view_fps}")
         # NeuroFluid frames carry no time: they are numbered in file order

@@ -18,110 +18,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from ..camera import Camera
 from ..errors import InputError
 from .dataset import FluidDataset, FrameRecord
 from .distortion import from_keys as distortion_from_keys
-from .nerf import _background, _num, intrinsics, path_value, read_json, view_id
-
-
-def video_info(path: Path) -> tuple[int, int, int, float]:
-    """(frame count, width, height, fps) from the container, without decoding."""
-    import cv2
-
-    if not Path(path).exists():
-        raise InputError(path, "video file does not exist")
-    cap = cv2.VideoCapture(str(path))
-    try:
-        if not cap.isOpened():
-            raise InputError(path, "OpenCV cannot open this video (corrupt or unsupported codec)")
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        fps = float(cap.get(cv2.CAP_PROP_FPS))
-    finally:
-        cap.release()
-    if n <= 0 or w <= 0 or h <= 0:
-        raise InputError(path, f"video reports {n} frames of {w}x{h}; cannot use it")
-    return n, w, h, fps
-
-
-def decode_video(path: Path) -> list[np.ndarray]:
-    """All frames of a video as (H, W, 3) uint8 RGB arrays."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise InputError(path, "OpenCV cannot open this video (corrupt or unsupported codec)")
-    frames = []
-    try:
-        while True:
-            ok, fr = cap.read()
-            if not ok:
-                break
-            frames.append(np.ascontiguousarray(fr[:, :, ::-1]))
-    finally:
-        cap.release()
-    if not frames:
-        raise InputError(path, "video decodes to no frames")
-    return frames
-
-
-class VideoReader:
-    """Random access to one video's frames without decoding it whole: frames are read in order
-    while requests follow each other, and the decoder seeks (``CAP_PROP_POS_FRAMES``) on a jump,
-    so interleaved multiview access costs about one decoded frame per request, not one video.
-    ``frames_decoded`` counts what was decoded (tests hold it to that)."""
-
-    def __init__(self, path: Path):
-        import cv2
-
-        self.path = Path(path)
-        self.cap = cv2.VideoCapture(str(self.path))
-        if not self.cap.isOpened():
-            raise InputError(self.path, "OpenCV cannot open this video (corrupt or unsupported codec)")
-        self.next = 0
-        self.frames_decoded = 0
-
-    def read(self, k: int) -> np.ndarray:
-        import cv2
-
-        if k != self.next:
-            self.cap.set(cv2.CAP_PROP_POS_FRAMES, int(k))
-            self.next = int(k)
-        ok, fr = self.cap.read()
-        if not ok:
-            raise InputError(self.path, f"frame {k} cannot be decoded (the video is shorter than its container "
-                                        "says, or truncated)")
-        self.frames_decoded += 1
-        self.next = k + 1
-        return np.ascontiguousarray(fr[:, :, ::-1])
-
-    def close(self) -> None:
-        self.cap.release()
-
-
-def write_video(path: Path, frames, fps: float) -> Path:
-    """Write RGB uint8 frames losslessly (FFV1 in .mkv/.avi); used by tests and exporters."""
-    import cv2
-
-    path = Path(path)
-    frames = [np.asarray(f) for f in frames]
-    h, w = frames[0].shape[:2]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), float(fps), (w, h))
-    if not wr.isOpened():
-        raise InputError(path, "OpenCV cannot open a FFV1 video writer for this path")
-    try:
-        for f in frames:
-            if f.shape[:2] != (h, w):
-                raise InputError(path, "all frames of a video must have the same size")
-            f = f if f.ndim == 3 and f.shape[2] == 3 else np.repeat(f.reshape(h, w, 1), 3, axis=2)
-            wr.write(np.ascontiguousarray(f[:, :, ::-1]))
-    finally:
-        wr.release()
-    return path
+from .fields import background, intrinsics, number, path_value, read_json, view_id
+from .videos import video_info
 
 
 def _camera(entry: dict, w: int, h: int, json_path: Path, where: str) -> Camera:
@@ -156,7 +58,7 @@ def video_records(root: Path, cams: list, json_path: Path, *, fps: float | None,
             raise InputError(json_path, f"{where}: missing 'video'")
         video = root / path_value(entry, "video", json_path, where)
         n, w, h, fps_file = video_info(video)
-        ew, eh = _num(entry, "w", json_path, where), _num(entry, "h", json_path, where)
+        ew, eh = number(entry, "w", json_path, where), number(entry, "h", json_path, where)
         if (ew is not None and int(ew) != w) or (eh is not None and int(eh) != h):
             raise InputError(video, f"video is {w}x{h} but {json_path.name} says "
                                     f"{int(ew or w)}x{int(eh or h)}")
@@ -179,11 +81,11 @@ def load_video(root, *, cameras_file: str = "cameras.json", grayscale: bool = Fa
     cams = meta.get("cameras")
     if not isinstance(cams, list) or not cams:
         raise InputError(json_path, "has no 'cameras' list (or it is empty)")
-    fps_all = _num(meta, "fps", json_path, "top level")
-    t0 = _num(meta, "start_time", json_path, "top level") or 0.0
+    fps_all = number(meta, "fps", json_path, "top level")
+    t0 = number(meta, "start_time", json_path, "top level") or 0.0
     records = video_records(root, cams, json_path, fps=fps_all, start_time=t0)
     ch = 1 if grayscale else 3
-    bg = _background({"background": meta.get("background", 0.0)}, ch, json_path)
+    bg = background({"background": meta.get("background", 0.0)}, ch, json_path)
     return FluidDataset(frames=records, root=root, channels=ch, background=bg,
                         background_removal=background_removal,
                         meta={"layout": "video"})

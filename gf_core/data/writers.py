@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..io import atomic_write_text
+from ..formats.hdf5 import atomic_write_text
 from .images import write_png
 
 

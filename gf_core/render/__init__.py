@@ -175,4 +175,28 @@ def render(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opaci
     return RenderOutput(color=img, alpha=alpha, depth=depth, means2d=means2d, radii=radii, backend=which)
 
 
-__all__ = ["render", "RenderOutput", "BACKENDS", "DEFAULT_MIN_ALPHA"]
+def render_points(positions, camera: Camera, *, radius: float, color=(0.5, 0.7, 1.0), opacity: float = 0.5,
+                  background=None, channels: int = 3, dtype=torch.float32, device=None) -> RenderOutput:
+    """Points drawn as isotropic Gaussians of std ``radius``, one colour and opacity (what the tests'
+    synthetic datasets and the demo's dot pictures show); SH degree 1 with only its base colour."""
+    import numpy as np
+
+    from .constants import SH_C0
+
+    p = torch.as_tensor(np.asarray(positions), dtype=dtype, device=device).reshape(-1, 3)
+    n = p.shape[0]
+    if not 0 < opacity < 1:
+        raise ValueError(f"opacity must be in (0, 1), got {opacity}")
+    if radius <= 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    col = torch.as_tensor(color, dtype=dtype, device=device).reshape(-1)[:channels]
+    sh = torch.zeros(n, 4, channels, dtype=dtype, device=device)
+    sh[:, 0, :] = (col - 0.5) / SH_C0  # colour = SH_C0 * sh0 + 0.5
+    quats = torch.zeros(n, 4, dtype=dtype, device=device)
+    quats[:, 0] = 1
+    scales = torch.exp(torch.full((n, 3), math.log(radius), dtype=dtype, device=device))
+    opacities = torch.sigmoid(torch.full((n,), math.log(opacity / (1 - opacity)), dtype=dtype, device=device))
+    return render(p, scales, quats, opacities, sh, camera, background)
+
+
+__all__ = ["render", "render_points", "RenderOutput", "BACKENDS", "DEFAULT_MIN_ALPHA"]

@@ -10,22 +10,13 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..io import SimData, SimWriter
+from ..formats.hdf5 import SimData, SimWriter
 from .common import Domain, FrameResult, SimulationError, run_frames, settle
 from .dfsph import DFSPH, DFSPHParams
 from .pbf import PBF, PBFParams
 from .scenes import SCENES, initial_state, presets
+from .solvers import SOLVERS, make_solver, solver
 
-SOLVERS = ("dfsph", "pbf")
-
-
-def make_solver(solver: str, radius: float, domain: Domain, material: dict, *, device="cpu",
-                **overrides):
-    if solver == "dfsph":
-        return DFSPH(DFSPHParams(particle_radius=radius, **{**material, **overrides}), domain, device=device)
-    if solver == "pbf":
-        return PBF(PBFParams(particle_radius=radius, **{**material, **overrides}), domain, device=device)
-    raise InputError("simulate", f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
 
 
 def prepare_particles(x: np.ndarray, v: np.ndarray, domain: Domain, spacing: float, *,
@@ -111,5 +102,5 @@ def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
 
 
 __all__ = ["simulate", "make_solver", "prepare_particles", "DFSPH", "DFSPHParams", "PBF", "PBFParams",
-           "Domain", "SimulationError", "SCENES", "SOLVERS", "presets", "initial_state", "run_frames",
+           "Domain", "SimulationError", "SCENES", "SOLVERS", "solver", "presets", "initial_state", "run_frames",
            "settle"]

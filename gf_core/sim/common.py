@@ -13,12 +13,12 @@ import numpy as np
 import torch
 
 from ..errors import GFError, InputError
-from ..neighbors import neighbor_pairs
-from . import kernels
+from ..sph.neighbors import neighbor_pairs
+from ..sph import kernels
 
 
 def native_available() -> bool:
-    from ..render import native
+    from .. import native
 
     return native.available()
 
@@ -29,7 +29,7 @@ def pick_backend(solver: str, backend: str, device) -> bool:
     CUDA tensors); "native" where that is impossible is an error."""
     ok = torch.device(device).type == "cpu" and native_available()
     if backend == "native" and not ok:
-        from ..render import native
+        from .. import native
 
         raise InputError(solver, f"backend 'native' needs CPU tensors and the native extension "
                                  f"({native.unavailable_reason() or 'device ' + str(device)})")
@@ -195,7 +195,7 @@ def implicit_viscosity(v, x, i, j, bi, bb, xb, V, h, nu_dt: float, *, boundary: 
     if nu_dt == 0.0 or v.shape[0] == 0:
         return v, 0
     if lists is not None:
-        from ..render import native
+        from .. import native
 
         ext, (rowptr, col, browptr, bcol) = native.load(), lists
         kind = {"cubic": 0, "wendland": 1}[kernel.name]
@@ -261,8 +261,8 @@ class Measure:
         rho = torch.full((n,), self.kernel.zero(self.h), dtype=x.dtype, device=x.device)
         kind = {"cubic": 0, "wendland": 1}.get(self.kernel.name)
         if kind is not None and x.device.type == "cpu" and native_available():
-            from ..neighbors import build_grid
-            from ..render import native
+            from ..sph.neighbors import build_grid
+            from .. import native
 
             ext, xc = native.load(), x.contiguous()
             rho += ext.kernel_sum(xc, xc, [], self.h, kind, True)
@@ -340,10 +340,9 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
     the solver runs for ``seconds`` with the velocities damped after every step by a factor
     (1 - damping (1 - t / seconds)), annealed to no damping at the end, and finally the velocities
     and the solver's warm starts are reset. A lattice is not the packing a fluid at rest has:
-    without settling, the hydrostatic tank's top layer collapses 0.5 s into the run and its fastest
-    particle is still at 1-2% of sqrt(gH) after 2 s. The annealing matters: a state held by
-    constant damping is not an equilibrium of the undamped solver, and released it moved again
-    (the tank: 3.4% of sqrt(gH) 0.2 s after a constant-damping settle, 0.6% after an annealed one).
+    without settling, a lattice's top layer collapses in the first part of the run. The annealing
+    matters: a state held by constant damping is not an equilibrium of the undamped solver, and
+    released it moves again (BENCHMARKS.md, "Hydrostatic tank").
     Returns a log: steps, wall seconds, the fastest particle before the reset and the mean density
     error of the settled state."""
     if not (math.isfinite(seconds) and seconds >= 0):

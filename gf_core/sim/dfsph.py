@@ -41,8 +41,8 @@ from dataclasses import dataclass
 
 import torch
 
-from ..neighbors import build_grid, neighbor_lists, neighbor_pairs
-from . import kernels
+from ..sph.neighbors import build_grid, neighbor_lists, neighbor_pairs
+from ..sph import kernels
 from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
                      implicit_viscosity, lattice_volume, limit_speed, pick_backend, xsph)
 
@@ -169,10 +169,9 @@ class DFSPH(SolverBase):
         D = torch.cat([Df,
                        torch.zeros(nw, dtype=x.dtype, device=x.device).index_add_(0, bb, (gwb * gwb).sum(-1))])
         alpha = torch.where(D > 1e-9 / h ** 2, 1.0 / D.clamp_min(1e-30), torch.zeros_like(D))
-        # cap the wall factor at 4x a full-lattice fluid particle's: uncapped, a wall particle with
-        # few fluid neighbours over-corrects in Jacobi (8 m/s at the honey cone's impact; dam-break
-        # front 13-27% ahead instead of 6-14%); capped at 1x, Jacobi needed 36 instead of 23
-        # iterations per step in the dam break (BENCHMARKS.md, "Hydrostatic tank", item 8)
+        # cap the wall factor at a few times a full-lattice fluid particle's: uncapped, a wall particle
+        # with few fluid neighbours over-corrects in Jacobi (a runaway dam-break front); capped at 1x,
+        # Jacobi needs many more iterations per step (BENCHMARKS.md, "Hydrostatic tank", item 8)
         alpha[n:] = alpha[n:].clamp(max=WALL_ALPHA_CAP * self._alpha_lattice)
         count = torch.cat([torch.bincount(i, minlength=n) + torch.bincount(bi, minlength=n),
                            wall_count + torch.bincount(bb, minlength=nw)])
@@ -182,7 +181,7 @@ class DFSPH(SolverBase):
     def _neighbourhood_native(self, x):
         """The same quantities from the native engine: CSR neighbour lists (the walls' grid built
         once), per-pair V gradW and W, densities, factors and counts in one pass."""
-        from ..render import native
+        from .. import native
 
         n, nw = x.shape[0], self.wall.shape[0]
         if self._wall_grid is None:
@@ -234,7 +233,7 @@ class DFSPH(SolverBase):
         else:
             kappa = torch.where(alpha > 0, warm * kappa, torch.zeros_like(kappa))
         if "native" in nb:  # the same loop in C++ (dfsph_solve in csrc/sim_cpu.cpp)
-            from ..render import native
+            from .. import native
 
             mode = {"density": 0, "divergence": 1}[residual]
             kappa, info = native.load().dfsph_solve(v, kappa, nb["rowptr"], nb["col"], nb["browptr"], nb["bcol"],
@@ -296,7 +295,7 @@ class DFSPH(SolverBase):
         # 2. non-pressure forces
         v.add_(dt * self.g)
         if p.xsph and "native" in nb:
-            from ..render import native
+            from .. import native
 
             v.copy_(native.load().csr_xsph(v, nb["rowptr"], nb["col"], nb["w"], self.V * p.xsph))
         elif p.xsph:

@@ -25,12 +25,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from ..errors import InputError
-from ..neighbors import build_grid, csr_rows, neighbor_lists, neighbor_pairs
-from . import kernels
+from ..sph.neighbors import build_grid, csr_rows, neighbor_lists, neighbor_pairs
+from ..sph import kernels
 from .common import (VISCOSITY_BOUNDARIES, Domain, SolverBase, enforce_box, estimate_rest_state, even_step,
                      implicit_viscosity, lattice_volume, limit_speed, pick_backend, xsph)
 
@@ -173,7 +172,7 @@ class PBF(SolverBase):
     def _constraints_native(self, x, v):
         """The same iterations, each one native call over CSR lists (``csrc/sim_cpu.cpp``; the
         walls' grid built once)."""
-        from ..render import native
+        from .. import native
 
         p, ext = self.p, native.load()
         if self._wall_grid is None:

@@ -1,0 +1,68 @@
+"""The loss of Eq. 11 as a registry of terms: ``TERMS`` lists every term once, in the order the
+loss sums them. A term is a module of this package (its equation as a function, cited, and a
+``Term`` object: its weight keys in ``[loss]`` with their defaults, when it acts, what it needs)
+plus its line here; its weight is a key of the presets (``[loss]``), which ``config.LossConfig``
+takes from this list. Weights of 0 compute nothing.
+
+Per decoded time (the mean over the step's times): settle, density, floor, smooth,
+residual_motion, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
+the step's images), hull (all its masked images), motion (across its times)."""
+
+from __future__ import annotations
+
+from .aniso import ANISO
+from .base import NEEDS, PHASES, RAMPS, Term
+from .color import COLOR
+from .density import DENSITY
+from .floor import FLOOR
+from .hull import HULL
+from .image import IMAGE
+from .motion import MOTION
+from .opacity import OPACITY
+from .residual_motion import RESIDUAL_MOTION
+from .settle import SETTLE
+from .smooth import SMOOTH
+from .volume import VOLUME
+
+TERMS: tuple[Term, ...] = (
+    IMAGE,
+    HULL,
+    SETTLE,
+    DENSITY,
+    FLOOR,
+    SMOOTH,
+    RESIDUAL_MOTION,
+    VOLUME,
+    ANISO,
+    OPACITY,
+    COLOR,
+    MOTION,
+)
+
+
+def weight_keys(terms=None) -> tuple:
+    """Every ``[loss]`` weight key, in the registry's order."""
+    return tuple(k for t in (TERMS if terms is None else terms) for k in t.keys())
+
+
+def default_weights(terms=None) -> dict:
+    return {k: v for t in (TERMS if terms is None else terms) for k, v in t.weights}
+
+
+def check_registry(terms=None) -> None:
+    """Names and weight keys unique; ``per``, ``phases``, ``ramp`` and ``needs`` known."""
+    terms = TERMS if terms is None else terms
+    names, keys = [t.name for t in terms], weight_keys(terms)
+    for what, seq in (("term name", names), ("weight key", keys)):
+        dup = {x for x in seq if seq.count(x) > 1}
+        if dup:
+            raise ValueError(f"loss terms: {what} {sorted(dup)} registered twice")
+    for t in terms:
+        if t.per not in ("frame", "step") or t.phases not in PHASES or t.ramp not in RAMPS \
+                or any(n not in NEEDS for n in t.needs):
+            raise ValueError(f"loss term {t.name}: unknown per / phases / ramp / needs")
+
+
+check_registry()
+
+__all__ = ["TERMS", "Term", "weight_keys", "default_weights", "check_registry"]

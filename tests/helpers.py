@@ -1,0 +1,29 @@
+"""Small helpers shared by the tests (the root conftest puts this folder on the import path)."""
+
+from gf_core.recon.config import make_config
+
+
+def quiet(*a, **k):
+    pass
+
+
+def _config(base: dict, over: dict):
+    for sec, vals in over.items():
+        base.setdefault(sec, {}).update(vals)
+    return make_config("water", overrides=base)
+
+
+def small_config(**over):
+    """The water preset on a small scene: 900 iterations, 500-1000 particles, a smaller decoder."""
+    return _config({"phases": {"iterations": 900, "limit_factor": 1.0},
+                    "model": {"init_particles": 500, "max_particles": 1000},
+                    "decoder": {"hidden_width": 128, "hidden_layers": 3},
+                    "train": {"eval_every": 300, "checkpoint_every": 300}}, over)
+
+
+def quick_config(**over):
+    """Smaller still, for tests of the machinery: 300 iterations, 300-600 particles."""
+    return _config({"phases": {"iterations": 300, "limit_factor": 1.0},
+                    "model": {"init_particles": 300, "max_particles": 600},
+                    "decoder": {"hidden_width": 64, "hidden_layers": 2},
+                    "train": {"eval_every": 100, "checkpoint_every": 1000}}, over)
