@@ -30,7 +30,7 @@ def _ints(s: str, flag: str = "--particles", minimum: int = 1) -> list[int]:
 def _check_common(args, out_is_file: bool = True) -> None:
     from gf_core.errors import InputError
 
-    from .cmd_simulate import check_out_file
+    from .options import check_out_file
 
     if getattr(args, "repeats", 1) < 1:
         raise InputError("--repeats", f"must be >= 1, got {args.repeats}")
@@ -150,7 +150,7 @@ def run_render(args) -> int:
 
     from gf_core.errors import InputError
 
-    from .cmd_reconstruct import check_device
+    from .options import check_device
 
     backends = [b for b in args.backends.split(",") if b]
     for b in backends:
@@ -186,7 +186,7 @@ def run_sim(args) -> int:
 
     from gf_core.errors import InputError
 
-    from .cmd_reconstruct import check_device
+    from .options import check_device
 
     solvers = [s for s in args.solvers.split(",") if s]
     from gf_core.sim.solvers import solver
@@ -266,8 +266,8 @@ def run_reconstruct(args) -> int:
     from gf_core.formats.hdf5 import atomic_write_text
     from gf_core.recon.config import make_config
 
-    from .cmd_reconstruct import check_device
-    from .cmd_render_dataset import parse_frames
+    from .options import check_device
+    from .options import parse_frames
 
     its = _ints(args.iterations, "--iterations")
     ns = _ints(args.particles, "--particles")

@@ -125,15 +125,18 @@ class Demo:
         print(f"{head}: {info['seconds']:.1f} s", flush=True)
 
 
+# gf-cli's own entry point, set by ``main.py`` (which registers this command): the demo runs the
+# other commands as a user would, in this process
+dispatch = None
+
+
 def gf(*argv) -> None:
     """Run one gf-cli command as a user would; a failure stops the demo with its message."""
     from gf_core.errors import GFError
 
-    from .main import main
-
     argv = [str(a) for a in argv]
     print("  $ gf-cli " + " ".join(argv), flush=True)
-    rc = main(argv)
+    rc = dispatch(argv)
     if rc != 0:
         raise GFError(f"demo: `gf-cli {' '.join(argv)}` failed (exit {rc}); see the message above")
 
@@ -144,7 +147,7 @@ def run(args) -> int:
 
     from gf_core.errors import GFError, InputError
 
-    from .cmd_reconstruct import check_device
+    from .options import check_device
 
     if importlib.util.find_spec("bpy") is None and shutil.which("blender") is None:
         raise GFError(f"the demo renders with Blender: install the bpy module (pip install 'bpy==5.0.1', which needs "

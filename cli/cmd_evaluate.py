@@ -40,7 +40,7 @@ def run(args) -> int:
     from gf_core.eval.evaluate import evaluate, evaluate_continuation
     from gf_core.formats.hdf5 import SIM_FORMAT, file_format, read_recon, read_sim
 
-    from .cmd_reconstruct import check_device
+    from .options import check_device
 
     device = check_device(args.device)
     if args.upsample is not None and args.upsample < 1:
@@ -48,7 +48,7 @@ def run(args) -> int:
     if args.rest_density is not None and not args.rest_density > 0:
         raise InputError("--rest-density", f"must be > 0 kg/m^3, got {args.rest_density}")
     if args.out is not None:
-        from .cmd_simulate import check_out_dir
+        from .options import check_out_dir
 
         check_out_dir(args.out)
     recon = args.run / "recon.h5" if args.run.is_dir() else args.run

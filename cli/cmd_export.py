@@ -61,7 +61,7 @@ def run(args) -> int:
     from gf_core.errors import InputError
     from gf_core.formats.hdf5 import read_recon
 
-    from .cmd_render_dataset import parse_frames
+    from .options import parse_frames
 
     check_options(args)
     recon_path = args.run / "recon.h5" if args.run.is_dir() else args.run

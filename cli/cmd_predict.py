@@ -35,8 +35,8 @@ def load_state(args):
     from gf_core.formats.hdf5 import read_recon
     from gf_core.downstream.predict import state_at
 
-    from .cmd_reconstruct import check_device
-    from .cmd_simulate import check_out_file
+    from .options import check_device
+    from .options import check_out_file
 
     check_device(args.device)
     check_out_file(args.out)

@@ -69,18 +69,6 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def check_device(device: str) -> str:
-    import torch
-
-    from gf_core.errors import InputError
-
-    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
-        raise InputError("--device", f"unknown device {device!r}; use cpu or cuda")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError("--device", "cuda was asked for but torch sees no CUDA GPU on this machine; use --device cpu")
-    return device
-
-
 def parse_scene_box(text: str) -> list:
     """``--scene-box X0,Y0,Z0,X1,Y1,Z1`` as [[x0, y0, z0], [x1, y1, z1]]; a bad value names the option."""
     import math
@@ -121,6 +109,8 @@ def run(args) -> int:
     from gf_core.errors import InputError
     from gf_core.recon.config import make_config
     from gf_core.recon.trainer import CHECKPOINT, reconstruct
+
+    from .options import check_device
 
     device = check_device(args.device)
     over = {}
@@ -173,7 +163,7 @@ def run(args) -> int:
         raise InputError(out, f"cannot write the run folder ({e.strerror})") from None
     kw = dict(grayscale=args.grayscale, background_removal=args.background_removal, fps=args.fps,
               duration=args.duration)
-    from .cmd_render_dataset import parse_frames
+    from .options import parse_frames
 
     frames = parse_frames(args.frames) if args.frames is not None else None
     train = load_dataset(args.dataset, **kw)

@@ -103,26 +103,6 @@ def build_command(args) -> tuple[list[str], str]:
     return cmd, "bpy"
 
 
-def parse_frames(spec: str) -> slice:
-    """START:END:STEP (python slice syntax, integers: "5" is the first five) -> slice; errors name --frames."""
-    parts = spec.split(":")
-    if len(parts) not in (1, 2, 3):
-        raise InputError("--frames", f"must be START:END:STEP, got {spec!r}")
-    vals = []
-    for p in parts:
-        p = p.strip()
-        if p == "":
-            vals.append(None)
-            continue
-        try:
-            vals.append(int(p))
-        except ValueError:
-            raise InputError("--frames", f"{p!r} is not an integer (in {spec!r}; expected START:END:STEP)") from None
-    if len(vals) == 3 and vals[2] is not None and vals[2] <= 0:
-        raise InputError("--frames", f"STEP must be a positive integer, got {vals[2]}")
-    return slice(*vals)
-
-
 def check_options(args) -> None:
     """Every option checked before Blender starts."""
     import math
@@ -154,6 +134,8 @@ def check_options(args) -> None:
         raise InputError("--blob", f"must be a positive number of particle radii, got {args.blob}")
     if args.transmission is not None and not 0 <= args.transmission <= 1:
         raise InputError("--transmission", f"must be in [0, 1], got {args.transmission}")
+    from .options import parse_frames
+
     return parse_frames(args.frames)
 
 
@@ -164,7 +146,7 @@ def check_out(args) -> None:
 
     from render_data.render_dataset import IMAGE_OPTIONS, ResumeMismatch, check_resume
 
-    from .cmd_simulate import check_out_dir
+    from .options import check_out_dir
 
     check_out_dir(args.out)
     if getattr(args, "force", False) or not args.out.exists():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -36,41 +35,6 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def _writable_from(path: Path, start: Path, flag: str) -> None:
-    """The nearest of ``start`` and its parents that exists is a folder we may write in."""
-    from gf_core.errors import InputError
-
-    for up in [start, *start.parents]:
-        if up.exists():
-            if not up.is_dir():
-                raise InputError(path, f"{flag}: {up} is a file, so it cannot hold {path.name}")
-            if not os.access(up, os.W_OK | os.X_OK):
-                raise InputError(path, f"{flag}: {up} is not writable")
-            return
-
-
-def check_out_file(path: Path, flag: str = "--out") -> None:
-    """An output file we will be able to write, checked before any work: not a folder, a parent
-    that is (or can be made) a writable folder."""
-    from gf_core.errors import InputError
-
-    path = Path(path)
-    if path.exists() and path.is_dir():
-        raise InputError(path, f"{flag} names a folder; give a file name (e.g. {path / 'sim.h5'})")
-    _writable_from(path, path.parent, flag)
-
-
-def check_out_dir(path: Path, flag: str = "--out") -> None:
-    """An output folder we will be able to write, checked before any work: not an existing file,
-    and it (or the nearest folder above it that exists) writable."""
-    from gf_core.errors import InputError
-
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise InputError(path, f"{flag} must be a folder, and this is a file")
-    _writable_from(path, path, flag)
-
-
 def check_options(args) -> None:
     from gf_core.errors import InputError
 
@@ -88,7 +52,7 @@ def check_options(args) -> None:
         require_memory("--particles", f"{args.particles} particles", float(args.particles) * PARTICLE_BYTES)
     if args.viscosity is not None and not (args.viscosity >= 0 and args.viscosity != float("inf")):
         raise InputError("--viscosity", f"must be >= 0 m^2/s, got {args.viscosity}")
-    from .cmd_reconstruct import check_device
+    from .options import check_device, check_out_file
 
     check_device(args.device)
     check_out_file(args.out)

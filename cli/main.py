@@ -49,5 +49,7 @@ def main(argv=None) -> int:
         return 130
 
 
+cmd_demo.dispatch = main
+
 if __name__ == "__main__":
     sys.exit(main())
