@@ -12,7 +12,9 @@
 # Results go to $OUT (the device tool's folder) or ./gpu_out. Environment: SKIP_RENDER_BENCH=1 leaves
 # out `bench render`; SKIP_TESTS=1 the `gpu` tests; PROFILE_STEPS=1 adds scripts/profile_steps.py
 # (where a training step's time goes) on DATASET; RECON_BUDGET (seconds, default 150) bounds the
-# reconstruction; RECON_ARGS adds options to it (e.g. --config FILE).
+# reconstruction; RECON_ARGS adds options to it (e.g. --config FILE). MATRIX="DIR [DIR...]" also
+# reconstructs each of those datasets (scene-matrix scenes from `gf-cli bench scenes`) on the GPU with
+# the default preset, `--time-budget ${MATRIX_BUDGET:-300}`, and evaluates it.
 set -uo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 cd "$ROOT"
@@ -66,4 +68,12 @@ if [ -d "$DATASET" ] && [ "$ITERS" != 0 ]; then
   $PY -m gf_cli.main evaluate /tmp/paper_run --dataset "$DATASET" --device cuda 2>&1 | tail -6
   tar -czf "$OUT/paper_run.tar.gz" -C /tmp/paper_run --exclude checkpoint.pt --exclude recon.h5 .
 fi
+for DS in ${MATRIX:-}; do
+  NAME=$(basename "$DS")
+  stamp "scene-matrix scene $NAME on the GPU"
+  $PY -m gf_cli.main reconstruct "$DS" --out "/tmp/matrix_$NAME" --device cuda --seed 0 \
+    --time-budget "${MATRIX_BUDGET:-300}" --force --quiet 2>&1 | tail -4
+  $PY -m gf_cli.main evaluate "/tmp/matrix_$NAME" --dataset "$DS" --device cuda 2>&1 | tail -6
+  tar -czf "$OUT/matrix_$NAME.tar.gz" -C "/tmp/matrix_$NAME" --exclude checkpoint.pt --exclude recon.h5 .
+done
 stamp "done"
