@@ -1,4 +1,4 @@
-"""``gf-cli export RUN --format ply|gltf|particles|vtk|vdb|usd``: a reconstruction for other tools."""
+"""``gf-cli export RUN --format ply|gltf|particles|vtk|vdb|usd|usd-splats``: a reconstruction for other tools."""
 
 from __future__ import annotations
 
@@ -15,10 +15,13 @@ def register(sub):
                                    "frame as legacy VTK with a velocity vector (meshio / Blender's sequence loader: "
                                    "motion blur). vdb: per "
                                    "frame an OpenVDB density grid. usd: one USD file of points with a time sample "
-                                   "per frame (pxr and openvdb come with the bpy module). Frames are the "
+                                   "per frame. usd-splats: one USD file of OpenUSD 3D Gaussian splats "
+                                   "(ParticleField3DGaussianSplat) with a time sample per frame (pxr and openvdb "
+                                   "come with the bpy module). Frames are the "
                                    "reconstruction's training frames, or a grid at --fps over its clip.")
     p.add_argument("run", type=Path, help="run folder (holding recon.h5) or a recon.h5 file")
-    p.add_argument("--format", required=True, choices=["ply", "gltf", "particles", "vtk", "vdb", "usd"], help="what to write")
+    p.add_argument("--format", required=True, choices=["ply", "gltf", "particles", "vtk", "vdb", "usd", "usd-splats"],
+                   help="what to write")
     p.add_argument("--time", type=float, default=None,
                    help="ply, gltf: seconds into the clip (default: the first frame); exclusive with --frames")
     p.add_argument("--frames", default=None,
@@ -27,7 +30,7 @@ def register(sub):
                    help="frames on a grid at this rate over the clip instead of the training frames "
                         "(the decoder is continuous: 2x the source rate gives in-between frames)")
     p.add_argument("--out", type=Path, default=None,
-                   help="output file (ply with --time, usd) or folder (default: RUN/export/...)")
+                   help="output file (ply or gltf with --time, usd, usd-splats) or folder (default: RUN/export/...)")
     p.add_argument("--radius-scale", type=float, default=1.0,
                    help="particle radius = this x the geometric mean of its Gaussian scales (default 1)")
     p.add_argument("--sh-degree", type=int, default=3, choices=[0, 1, 2, 3],
@@ -87,13 +90,17 @@ def run(args) -> int:
         print(f"wrote {out} ({anim.num_particles} Gaussians at t = {t:g} s)")
         return 0
     times = ex.export_times(recon, frames=frames, fps=args.fps)
-    if fmt == "usd":
-        out = args.out or base / "particles.usdc"
+    if fmt in ("usd", "usd-splats"):
+        out = args.out or base / ("particles.usdc" if fmt == "usd" else "gaussians.usdc")
         if out.suffix not in (".usd", ".usdc", ".usda"):
-            raise InputError(out, "--out for usd must end in .usd, .usdc or .usda")
+            raise InputError(out, f"--out for {fmt} must end in .usd, .usdc or .usda")
         fps = args.fps or ex.sample_rate(times, (recon.config or {}).get("fps"), where=recon_path)
-        ex.export_usd(anim, times, out, fps=fps, radius_scale=args.radius_scale)
-        print(f"wrote {out} ({len(times)} time samples at {fps:g} per second, {anim.num_particles} points)")
+        if fmt == "usd":
+            ex.export_usd(anim, times, out, fps=fps, radius_scale=args.radius_scale)
+        else:
+            ex.export_usd_splats(anim, times, out, fps=fps)
+        what = "points" if fmt == "usd" else "Gaussians"
+        print(f"wrote {out} ({len(times)} time samples at {fps:g} per second, {anim.num_particles} {what})")
         return 0
     out = args.out or base / {"ply": "ply", "gltf": "gltf", "particles": "particles", "vtk": "vtk", "vdb": "vdb"}[fmt]
     if out.exists() and not out.is_dir():

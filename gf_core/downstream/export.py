@@ -22,6 +22,9 @@
 - ``vdb``: per frame an OpenVDB float grid ``density``, class fog volume (``formats/caches.py``).
 - ``usd``: one USD file of points with time samples: positions, widths, velocities, and the
   base colour and opacity of every point as ``displayColor`` / ``displayOpacity`` (``formats/caches.py``).
+- ``usd-splats``: one USD file of OpenUSD's 3D Gaussian splats (``ParticleField3DGaussianSplat``,
+  OpenUSD 26.03 and later) with time samples: positions, orientations, scales, opacities and the
+  SH coefficients of every Gaussian (``formats/caches.py``).
 
 Times: by default the reconstruction's training frames (``frame_times_s`` in recon.h5), else a
 grid at ``fps`` over the clip; ``--fps`` resamples the clip (the decoder is continuous).
@@ -40,7 +43,7 @@ from ..formats.gltf import write_gaussians_glb
 from ..formats.ply import gaussians_to_ply_columns, write_ply
 from ..formats.vtk import write_vtk_points
 
-FORMATS = ("ply", "gltf", "particles", "vtk", "vdb", "usd")
+FORMATS = ("ply", "gltf", "particles", "vtk", "vdb", "usd", "usd-splats")
 
 
 # ---- times ----------------------------------------------------------------------------------------
@@ -146,5 +149,18 @@ def export_usd(anim: ParticleAnimation, times, path, *, fps: float, radius_scale
                                  metadata={"times_s": [float(t) for t in times]}))
 
 
+def export_usd_splats(anim: ParticleAnimation, times, path, *, fps: float) -> Path:
+    """The Gaussians as OpenUSD 3D Gaussian splats; time code k = the k-th exported time."""
+    from ..formats.caches import write_usd_gaussians
+
+    def samples():
+        for k, t in enumerate(times):
+            g = anim.at(t, warn=True)
+            yield k, g["positions"], g["log_scales"], g["quats"], g["logit_opacity"], g["sh"], g["colors"]
+
+    return Path(write_usd_gaussians(path, samples(), fps=fps, start=0, end=len(times) - 1,
+                                    metadata={"times_s": [float(t) for t in times]}))
+
+
 __all__ = ["FORMATS", "export_times", "sample_rate", "export_ply", "export_gltf", "export_particles", "export_vtk",
-           "export_vdb", "export_usd", "particle_radii"]
+           "export_vdb", "export_usd", "export_usd_splats", "particle_radii"]

@@ -68,23 +68,10 @@ def write_usd_points(path, samples, *, fps: float, start: float, end: float, met
     the ``displayColor`` / ``displayOpacity`` primvars per point (what Houdini, Omniverse and
     usdview show); up axis z, 1 metre per unit (Blender's conventions)."""
     bundled_module("pxr", extra_paths)
-    from pxr import Kind, Usd, UsdGeom, Vt
+    from pxr import Usd, UsdGeom, Vt
 
     path = str(path)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = _tmp_for(path)
-    if os.path.exists(tmp):
-        os.remove(tmp)
-    stage = Usd.Stage.CreateNew(tmp)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    stage.SetTimeCodesPerSecond(float(fps))
-    stage.SetFramesPerSecond(float(fps))
-    stage.SetStartTimeCode(float(start))
-    stage.SetEndTimeCode(float(end))
-    root = UsdGeom.Xform.Define(stage, "/gaussfluids")
-    stage.SetDefaultPrim(root.GetPrim())
-    Usd.ModelAPI(root.GetPrim()).SetKind(Kind.Tokens.component)
+    stage, tmp = _new_stage(path, fps, start, end)
     pts = UsdGeom.Points.Define(stage, "/gaussfluids/particles")
     pa, wa, ext = pts.CreatePointsAttr(), pts.CreateWidthsAttr(), pts.CreateExtentAttr()
     va = ca = oa = None
@@ -111,6 +98,36 @@ def write_usd_points(path, samples, *, fps: float, start: float, end: float, met
         n_samples += 1
     if n_samples == 0:
         raise ValueError("no time samples to write")
+    _finish_stage(stage, tmp, path, metadata)
+    return path
+
+
+def _new_stage(path: str, fps: float, start: float, end: float):
+    """A new stage at a temporary name beside ``path``: z up, 1 metre per unit, ``fps`` time codes
+    per second over [start, end], default prim /gaussfluids (an Xform of kind component)."""
+    from pxr import Kind, Usd, UsdGeom
+
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = _tmp_for(path)
+    if os.path.exists(tmp):
+        os.remove(tmp)
+    stage = Usd.Stage.CreateNew(tmp)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    stage.SetStartTimeCode(float(start))
+    stage.SetEndTimeCode(float(end))
+    root = UsdGeom.Xform.Define(stage, "/gaussfluids")
+    stage.SetDefaultPrim(root.GetPrim())
+    Usd.ModelAPI(root.GetPrim()).SetKind(Kind.Tokens.component)
+    return stage, tmp
+
+
+def _finish_stage(stage, tmp: str, path: str, metadata: dict | None) -> None:
+    """The layer's custom data (generator, ``metadata``), saved, then moved to ``path``."""
+    from pxr import Vt
+
     meta = {"generator": "GaussFluids"}
     for k, v in (metadata or {}).items():  # USD dictionaries hold typed arrays, not Python lists
         meta[k] = Vt.DoubleArray([float(x) for x in v]) if isinstance(v, (list, tuple)) else v
@@ -118,6 +135,76 @@ def write_usd_points(path, samples, *, fps: float, start: float, end: float, met
     stage.GetRootLayer().Save()
     del stage
     os.replace(tmp, path)
+
+
+SPLAT_TYPE = "ParticleField3DGaussianSplat"
+
+
+def write_usd_gaussians(path, samples, *, fps: float, start: float, end: float, metadata: dict | None = None,
+                        extra_paths=()) -> str:
+    """OpenUSD's 3D Gaussian splats (``UsdVolParticleField3DGaussianSplat``, OpenUSD 26.03 and
+    later) at /gaussfluids/gaussians, time-sampled.
+
+    ``samples``: iterable of (time code, positions (N, 3), log scales (N, 3), quaternions w x y z
+    (N, 4, any norm), logit opacities (N,), SH coefficients (N, K, 1 or 3) in the 3DGS basis and
+    order, base colours (N, 3)). Written as the schema defines them: linear ``scales`` (the
+    Gaussian's standard deviations), unit ``orientations``, ``opacities`` in [0, 1],
+    ``radiance:sphericalHarmonicsCoefficients`` K per particle, contiguous (grayscale repeated in R,
+    G and B), ``radiance:sphericalHarmonicsDegree``; ``displayColor`` / ``displayOpacity`` for
+    viewers that draw points. The prim's type and attributes are authored by name, so any pxr
+    writes them (Blender's included); readers of 26.03 and later see the typed schema."""
+    bundled_module("pxr", extra_paths)
+    from pxr import Gf, Sdf, Usd, Vt
+
+    path = str(path)
+    stage, tmp = _new_stage(path, fps, start, end)
+    prim = stage.DefinePrim("/gaussfluids/gaussians", SPLAT_TYPE)
+    T = Sdf.ValueTypeNames
+    attrs = {name: prim.CreateAttribute(name, kind) for name, kind in (
+        ("positions", T.Point3fArray), ("orientations", T.QuatfArray), ("scales", T.Float3Array),
+        ("opacities", T.FloatArray), ("radiance:sphericalHarmonicsCoefficients", T.Float3Array),
+        ("primvars:displayColor", T.Color3fArray), ("primvars:displayOpacity", T.FloatArray),
+        ("extent", T.Float3Array))}
+    for name in ("primvars:displayColor", "primvars:displayOpacity"):
+        attrs[name].SetMetadata("interpolation", "vertex")
+    degree_attr = prim.CreateAttribute("radiance:sphericalHarmonicsDegree", T.Int, variability=Sdf.VariabilityUniform)
+    degree = None
+    n_samples = 0
+    for code, p, log_s, q, logit_o, sh, color in samples:
+        p = np.ascontiguousarray(p, np.float32)
+        sh = np.asarray(sh, np.float32)
+        if sh.shape[2] == 1:
+            sh = np.repeat(sh, 3, axis=2)
+        k = sh.shape[1]
+        d = int(round(math.sqrt(k))) - 1
+        if (d + 1) ** 2 != k or (degree is not None and d != degree):
+            raise ValueError(f"{k} SH coefficients per particle is not (degree + 1)^2 of one degree")
+        degree = d
+        q = np.asarray(q, np.float64)
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
+        scales = np.exp(np.asarray(log_s, np.float64))
+        opacity = 1.0 / (1.0 + np.exp(-np.asarray(logit_o, np.float64)))
+        tc = Usd.TimeCode(float(code))
+        attrs["positions"].Set(Vt.Vec3fArray.FromNumpy(p), tc)
+        # GfQuatf's memory (and so FromNumpy's columns) is the imaginary part, then the real one
+        attrs["orientations"].Set(Vt.QuatfArray.FromNumpy(np.ascontiguousarray(q[:, [1, 2, 3, 0]], np.float32)), tc)
+        attrs["scales"].Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(scales, np.float32)), tc)
+        attrs["opacities"].Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(opacity, np.float32)), tc)
+        attrs["radiance:sphericalHarmonicsCoefficients"].Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(sh.reshape(-1, 3))), tc)
+        attrs["primvars:displayColor"].Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(np.clip(color, 0, 1), np.float32)), tc)
+        attrs["primvars:displayOpacity"].Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(opacity, np.float32)), tc)
+        if len(p):  # three standard deviations hold the drawn part of each Gaussian
+            reach = 3.0 * scales.max(1, keepdims=True)
+            attrs["extent"].Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, (p - reach).min(0))),
+                                               Gf.Vec3f(*map(float, (p + reach).max(0)))]), tc)
+        n_samples += 1
+    if n_samples == 0:
+        raise ValueError("no time samples to write")
+    degree_attr.Set(int(degree))
+    _finish_stage(stage, tmp, path, metadata)
     return path
 
 
@@ -200,5 +287,5 @@ def read_vdb_density(path, shape, *, name: str = "density", extra_paths=()) -> n
     return out
 
 
-__all__ = ["bundled_module", "write_usd_points", "read_usd_points", "density_grid", "write_vdb_density",
+__all__ = ["bundled_module", "write_usd_points", "read_usd_points", "write_usd_gaussians", "SPLAT_TYPE", "density_grid", "write_vdb_density",
            "read_vdb_density"]

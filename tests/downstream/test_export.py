@@ -1,5 +1,6 @@
 """gf-cli export: 3DGS PLY (reads back identical, renders the same image), particle PLYs with
-velocities, OpenVDB (identical voxels) and USD (identical positions at every time sample)."""
+velocities, OpenVDB (identical voxels), USD points (identical positions at every time sample) and
+USD Gaussian splats (read back by OpenUSD 26's own schema)."""
 
 import importlib.util
 
@@ -202,6 +203,124 @@ def test_usd_reads_back_identical_positions(recon_file, tmp_path):
         # matrix products need not repeat bit for bit between calls), not a lossy conversion
         np.testing.assert_allclose(read_usd_points(path, k), anim.at(t)["positions"], rtol=0, atol=1e-6)
 
+
+
+def _unit_wxyz(q):
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return q * np.where(q[:, :1] < 0, -1.0, 1.0)  # q and -q are one rotation
+
+
+@needs_bpy
+def test_usd_splats_hold_every_gaussian_as_the_schema_defines(recon_file, tmp_path, capsys):
+    """OpenUSD's ParticleField3DGaussianSplat: linear scales (exp of the log scales), unit
+    quaternions, opacities in [0, 1], the SH coefficients (degree + 1)^2 per particle in the 3DGS
+    order, a time sample per exported frame at the clip's real rate."""
+    from gf_cli.main import main
+    from gf_core.formats.caches import bundled_module
+
+    bundled_module("pxr")
+    from pxr import Usd
+
+    anim = ParticleAnimation(read_recon(recon_file))
+    out = tmp_path / "g.usda"
+    assert main(["export", str(recon_file), "--format", "usd-splats", "--out", str(out)]) == 0
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetTimeCodesPerSecond() == pytest.approx(10.0)
+    prim = stage.GetPrimAtPath("/gaussfluids/gaussians")
+    assert prim.GetTypeName() == "ParticleField3DGaussianSplat"
+    assert prim.GetAttribute("radiance:sphericalHarmonicsDegree").Get() == 1
+    for k, t in enumerate(TIMES):
+        g = anim.at(t)
+        get = lambda name: np.asarray(prim.GetAttribute(name).Get(k), np.float64)  # noqa: E731
+        np.testing.assert_allclose(get("positions"), g["positions"], atol=1e-6)
+        np.testing.assert_allclose(get("scales"), np.exp(g["log_scales"]), rtol=1e-6)
+        xyzw = np.array([[q.GetImaginary()[0], q.GetImaginary()[1], q.GetImaginary()[2], q.GetReal()]
+                         for q in prim.GetAttribute("orientations").Get(k)])
+        np.testing.assert_allclose(_unit_wxyz(xyzw[:, [3, 0, 1, 2]]), _unit_wxyz(g["quats"]), atol=1e-6)
+        np.testing.assert_allclose(get("opacities"), g["opacities"], atol=1e-6)
+        np.testing.assert_allclose(get("radiance:sphericalHarmonicsCoefficients"), g["sh"].reshape(-1, 3), atol=1e-6)
+        np.testing.assert_allclose(get("primvars:displayOpacity"), g["opacities"], atol=1e-6)
+        lo, hi = get("extent")
+        assert np.all(lo <= g["positions"].min(0)) and np.all(hi >= g["positions"].max(0))
+    assert main(["export", str(recon_file), "--format", "usd-splats", "--out", str(tmp_path / "g.ply")]) == 2
+    assert "--out for usd-splats must end in .usd, .usdc or .usda" in capsys.readouterr().err
+
+
+USD_CORE = "usd-core==26.11"  # the first OpenUSD on PyPI with ParticleField3DGaussianSplat is 26.03
+
+READ_SPLATS = """
+import json, sys
+from pxr import Usd, UsdVol
+stage = Usd.Stage.Open(sys.argv[1])
+prim = stage.GetPrimAtPath("/gaussfluids/gaussians")
+splat = UsdVol.ParticleField3DGaussianSplat(prim)
+sh_api = UsdVol.ParticleFieldSphericalHarmonicsAttributeAPI(prim)
+print(json.dumps({
+    "version": list(Usd.GetVersion()),
+    "is_a": prim.IsA(UsdVol.ParticleField3DGaussianSplat),
+    "apis": [prim.HasAPI(a) for a in (UsdVol.ParticleFieldPositionAttributeAPI, UsdVol.ParticleFieldOrientationAttributeAPI,
+                                      UsdVol.ParticleFieldScaleAttributeAPI, UsdVol.ParticleFieldOpacityAttributeAPI,
+                                      UsdVol.ParticleFieldKernelGaussianEllipsoidAPI,
+                                      UsdVol.ParticleFieldSphericalHarmonicsAttributeAPI)],
+    "degree": sh_api.GetRadianceSphericalHarmonicsDegreeAttr().Get(),
+    "positions": [list(p) for p in splat.GetPositionsAttr().Get(1)],
+    "scales": [list(s) for s in splat.GetScalesAttr().Get(1)],
+    "orientations": [[q.GetReal(), *q.GetImaginary()] for q in splat.GetOrientationsAttr().Get(1)],
+    "opacities": list(splat.GetOpacitiesAttr().Get(1)),
+    "sh": [list(c) for c in sh_api.GetRadianceSphericalHarmonicsCoefficientsAttr().Get(1)],
+}))
+"""
+
+
+def _usd_core(tmp_path_factory) -> str:
+    """usd-core from PyPI, unpacked once into the wheel cache (the reference reader of the schema;
+    kept out of the test process, whose pxr is Blender's)."""
+    import os
+    import subprocess
+    import sys
+    import zipfile
+    from pathlib import Path
+
+    cache = Path(os.environ.get("GF_WHEEL_CACHE", Path.home() / ".cache" / "gaussfluids" / "wheels"))
+    target = cache / USD_CORE.replace("==", "-")
+    if not (target / "pxr" / "UsdVol").is_dir():
+        cache.mkdir(parents=True, exist_ok=True)
+        r = subprocess.run([sys.executable, "-m", "pip", "download", USD_CORE, "--no-deps", "--only-binary=:all:",
+                            "-d", str(cache), "--disable-pip-version-check", "--quiet"], capture_output=True, text=True)
+        wheels = sorted(cache.glob(f"{USD_CORE.replace('==', '-').replace('-', '_', 1)}-*.whl"))
+        assert r.returncode == 0 and wheels, f"pip download {USD_CORE} failed: {r.stderr[-500:]}"
+        tmp = Path(tmp_path_factory.mktemp("usd_core"))
+        with zipfile.ZipFile(wheels[-1]) as z:
+            z.extractall(tmp)
+        os.replace(tmp, target) if not target.exists() else None
+    return str(target)
+
+
+@needs_bpy
+def test_usd_splats_read_by_openusd_26_as_the_typed_schema(recon_file, tmp_path, tmp_path_factory):
+    """The file read by the schema's own reader (usd-core 26.11, in its own process): the prim is a
+    ParticleField3DGaussianSplat with its six built-in APIs, and the schema's getters return the
+    Gaussians at a time code."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    anim = ParticleAnimation(read_recon(recon_file))
+    out = ex.export_usd_splats(anim, TIMES, tmp_path / "g.usdc", fps=10.0)
+    env = dict(os.environ, PYTHONPATH=_usd_core(tmp_path_factory))
+    r = subprocess.run([sys.executable, "-c", READ_SPLATS, str(out)], capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads(r.stdout)
+    assert got["version"][1] >= 26 and got["is_a"] and all(got["apis"]) and got["degree"] == 1
+    g = anim.at(TIMES[1])
+    np.testing.assert_allclose(got["positions"], g["positions"], atol=1e-6)
+    np.testing.assert_allclose(got["scales"], np.exp(g["log_scales"]), rtol=1e-6)
+    np.testing.assert_allclose(_unit_wxyz(got["orientations"]), _unit_wxyz(g["quats"]), atol=1e-6)
+    np.testing.assert_allclose(got["opacities"], g["opacities"], atol=1e-6)
+    assert len(got["sh"]) == len(g["positions"]) * 4
+    np.testing.assert_allclose(got["sh"], g["sh"].reshape(-1, 3), atol=1e-6)
 
 @needs_bpy
 def test_usd_points_carry_colour_opacity_kind_and_the_real_frame_rate(recon_file, tmp_path):
