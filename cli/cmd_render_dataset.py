@@ -160,13 +160,20 @@ def check_out(args) -> None:
 
 
 def run(args) -> int:
-    from gf_core.formats.hdf5 import read_sim
+    from gf_core.formats.hdf5 import output_lock, read_sim
 
     frames = check_options(args)
     sim = read_sim(args.sim)
     if not range(sim.num_frames)[frames]:
         raise InputError("--frames", f"{args.frames} selects none of the simulation's {sim.num_frames} frames")
     check_out(args)
+    with output_lock(args.out, "dataset"):
+        return _render(args)
+
+
+def _render(args) -> int:
+    from gf_core.formats.hdf5 import atomic_path
+
     cmd, engine = build_command(args)
     print(f"rendering with {engine}: {' '.join(cmd[:6])} ...", flush=True)
     proc = subprocess.Popen(cmd, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
@@ -182,8 +189,6 @@ def run(args) -> int:
         tail = "\n".join(log[-15:])
         raise GFError(f"the render process failed (exit {code}):\n{tail}")
     if engine == "blender":  # Blender's Python has no h5py: the ground-truth copy is made here
-        from gf_core.formats.hdf5 import atomic_path
-
         with atomic_path(args.out / "gt_sim.h5") as tmp:
             shutil.copyfile(args.sim, tmp)
     return 0

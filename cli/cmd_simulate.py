@@ -73,6 +73,7 @@ def _overrides(args) -> dict:
 def run(args) -> int:
     from tqdm import tqdm
 
+    from gf_core.formats.hdf5 import output_lock
     from gf_core.sim import simulate
 
     check_options(args)  # before the (possibly long) settle and simulation
@@ -91,10 +92,11 @@ def run(args) -> int:
         bar.update(1)
 
     try:
-        sim, res = simulate(args.scene, solver=args.solver, particles=args.particles, fps=args.fps,
-                            seconds=args.seconds, device=args.device, progress=progress,
-                            settle_seconds=args.settle, out=args.out,  # written frame by frame
-                            **_overrides(args))
+        with output_lock(args.out, "simulation"):
+            sim, res = simulate(args.scene, solver=args.solver, particles=args.particles, fps=args.fps,
+                                seconds=args.seconds, device=args.device, progress=progress,
+                                settle_seconds=args.settle, out=args.out,  # written frame by frame
+                                **_overrides(args))
     except KeyboardInterrupt:
         if bar:
             bar.close()

@@ -79,6 +79,49 @@ def folder_lock(folder, what: str = "run"):
         f.close()
 
 
+@contextlib.contextmanager
+def output_lock(target, what: str):
+    """Hold ``.NAME.lock`` beside the output ``target`` (a file or a folder) for the block, so
+    that a second process writing the same output is refused at once with one line instead of
+    mixing its frames or images in. The lock file sits outside the output (a ``--force`` that
+    clears the output keeps it) and is removed on release; the lock goes with the process, so a
+    killed run leaves nothing that blocks a resume."""
+    import fcntl
+
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    lock = target.parent / f".{target.name}.lock"
+    while True:
+        f = open(lock, "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            f.close()
+            raise InputError(target, f"another process ({holder}) is writing this {what}; wait for it to "
+                                     "finish or choose another --out") from None
+        try:  # the holder before us may have removed the file between our open and our lock
+            same = os.fstat(f.fileno()).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        f.close()
+    try:
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}")
+        f.flush()
+        yield
+    finally:
+        try:
+            os.unlink(lock)
+        except FileNotFoundError:
+            pass
+        f.close()
+
+
 def atomic_write_text(path, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)

@@ -162,6 +162,59 @@ def test_a_second_process_on_one_run_folder_is_refused(base, tmp_path):
         first.wait()
 
 
+
+def test_a_second_process_on_one_simulation_is_refused_and_the_first_completes(tmp_path):
+    """Two `simulate` writing one --out: the second is refused in one line while the first runs;
+    the first's file is complete, frame for frame, and its lock is gone after it."""
+    import h5py
+
+    from gf_core.formats.hdf5 import read_sim
+
+    out = tmp_path / "s.h5"
+    args = ["simulate", "water_cube", "--particles", "1500", "--fps", "20", "--seconds", "5", "--quiet", "--out", out]
+    first = _gf(*args)
+
+    def started():
+        try:
+            with h5py.File(out, "r", locking=False) as f:
+                return f["times"].shape[0] >= 2
+        except Exception:  # noqa: BLE001 -- not created yet, or caught between two writes
+            return False
+    _wait_for(started, first)
+    second = _gf(*args)
+    _, err = second.communicate()
+    assert second.returncode == 2 and "another process (pid" in err and len(err.strip().splitlines()) == 1, err
+    assert first.wait() == 0, first.communicate()
+    sim = read_sim(out)
+    assert sim.complete and sim.num_frames == 101
+    assert not (tmp_path / ".s.h5.lock").exists()
+
+
+def test_a_dataset_being_rendered_is_not_rendered_into_by_a_second_process(base, tmp_path):
+    """While one process holds a dataset folder, `render-dataset` into it is refused in one line
+    before Blender starts, and nothing is written there."""
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "ds"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "from gf_core.formats.hdf5 import output_lock\n"
+        f"with output_lock({str(out)!r}, 'dataset'):\n"
+        "    print('held', flush=True)\n"
+        "    time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        t0 = time.time()
+        second = _gf("render-dataset", base["sim"], "--out", out, "--resolution", "16", "--views", "2")
+        _, err = second.communicate()
+        assert second.returncode == 2 and "another process (pid" in err and len(err.strip().splitlines()) == 1, err
+        assert time.time() - t0 < 30 and not out.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+
 def test_simulate_killed_leaves_an_incomplete_file_and_a_rerun_equals_an_uninterrupted_one(tmp_path):
     import signal
 
