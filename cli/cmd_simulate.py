@@ -101,12 +101,14 @@ def run(args) -> int:
         if bar:
             bar.close()
         if args.out.exists():
-            print(f"interrupted: the frames computed so far are in {args.out} (marked incomplete)", file=sys.stderr)
+            print(f"interrupted: the frames computed so far are in {args.out} (marked incomplete); the same "
+                  "command again goes on from its last frame", file=sys.stderr)
         raise
     if bar:
         bar.close()
     wall = time.perf_counter() - t0
     print(f"{args.scene} ({args.solver}): {sim.num_particles} particles, {sim.num_frames} frames at "
           f"{sim.fps:g} fps, {len(res.steps)} steps in {wall:.1f} s; final mean density error "
-          f"{100 * sim.stats['density_err_mean'][-1]:.3f}% -> {args.out}")
+          f"{100 * sim.stats['density_err_mean'][-1]:.3f}% -> {args.out}"
+          + (f" (resumed after frame {sim.config['resumed_after_frame']})" if "resumed_after_frame" in sim.config else ""))
     return 0

@@ -383,10 +383,51 @@ class SimWriter:
         f.flush()
         self.frames = 0
 
-    def append(self, positions, velocities, time: float, stats: dict | None = None) -> None:
+    @classmethod
+    def reopen(cls, path, n_particles: int) -> "SimWriter | None":
+        """A writer that goes on with an incomplete ``sim.h5`` of ``n_particles`` whose last frame
+        carries the solver's resume state; None when the file is not one (complete, another
+        size, no state, or unreadable), and the caller starts afresh."""
+        h5py = _h5()
+        try:
+            f = h5py.File(path, "r+")
+        except (OSError, ValueError):
+            return None
+        try:
+            n = int(f["times"].shape[0])
+            ok = (not bool(f.attrs.get("complete", True)) and n >= 1 and "resume_state" in f
+                  and int(f["resume_state"].attrs.get("frame", -1)) == n - 1
+                  and f["positions"].shape[1:] == (n_particles, 3)
+                  and all(f[k].shape[0] >= n for k in ("positions", "velocities")))
+        except (KeyError, OSError, ValueError, TypeError):
+            ok = False
+        if not ok:
+            f.close()
+            return None
+        for name in ("positions", "velocities"):  # a frame torn by the kill, past the last complete one
+            f[name].resize(n, axis=0)
+        for name in STAT_KEYS:
+            f["stats"][name].resize(n, axis=0)
+        w = cls.__new__(cls)
+        w.path, w.f, w.frames = Path(path), f, n
+        return w
+
+    def resume_state(self) -> tuple[np.ndarray, np.ndarray, dict]:
+        """(positions, velocities) of the last frame written and the solver state saved with it."""
+        f, k = self.f, self.frames - 1
+        g = f["resume_state"]
+        return (np.asarray(f["positions"][k]), np.asarray(f["velocities"][k]),
+                {name: np.asarray(g[name]) for name in g})
+
+    def append(self, positions, velocities, time: float, stats: dict | None = None,
+               solver_state: dict | None = None) -> None:
+        """Frame ``self.frames``; ``solver_state`` (arrays) is what a resumed run needs besides
+        the frame, kept for the last frame only and dropped when the file is complete."""
         _check_finite("positions", np.asarray(positions), str(self.path))
         _check_finite("velocities", np.asarray(velocities), str(self.path))
         f, k = self.f, self.frames
+        if "resume_state" in f:
+            f["resume_state"].attrs["frame"] = -1  # until this frame is whole
         for name, a in (("positions", positions), ("velocities", velocities)):
             f[name].resize(k + 1, axis=0)
             f[name][k] = np.asarray(a, np.float32)
@@ -396,6 +437,19 @@ class SimWriter:
             d = f["stats"][name]
             d.resize(k + 1, axis=0)
             d[k] = float((stats or {}).get(name, np.nan))
+        if solver_state is not None:
+            g = f.require_group("resume_state")
+            for name, a in solver_state.items():  # overwritten in place: HDF5 does not reuse freed space
+                a = np.asarray(a)
+                if name in g and (g[name].shape != a.shape or g[name].dtype != a.dtype):
+                    del g[name]
+                if name in g:
+                    g[name][...] = a
+                else:
+                    g.create_dataset(name, data=a)
+            for name in [n for n in g if n not in solver_state]:
+                del g[name]
+            g.attrs["frame"] = k
         self.frames = k + 1
         f.flush()
 
@@ -404,6 +458,8 @@ class SimWriter:
             if config is not None:
                 self.f.attrs["config"] = json.dumps(config)
             self.f.attrs["complete"] = bool(complete)
+            if complete and "resume_state" in self.f:
+                del self.f["resume_state"]
             self.f.close()
             self.f = None
             umask = os.umask(0)

@@ -310,9 +310,8 @@ class SolverBase:
         self.wall = box_wall_particles(domain, self.spacing, layers=2, dtype=dtype, device=device)
         self.g = torch.tensor(params.gravity, dtype=dtype, device=device)
         # Force limit on the step (Monaghan 1992), dt <= force_cfl sqrt(2r / |g|): at rest the CFL
-        # limit is void and dt would jump to its cap. Measured on the hydrostatic tank (2r = 1/60 m,
-        # DFSPH): dt 0.01 s (force_cfl 0.25) blows up to 4.7 sqrt(gH) within 0.3 s; 0.0075 s (0.19)
-        # and 0.005 s (0.12) stay bounded. PBF with 4 iterations at dt 1/24 s reaches 1.1 sqrt(gH).
+        # limit is void and dt would jump to its cap, which a resting tank does not survive
+        # (BENCHMARKS.md, "Hydrostatic tank").
         gnorm = float(self.g.norm())
         self.dt_force = params.force_cfl * math.sqrt(self.spacing / gnorm) if gnorm > 0 else math.inf
         self.vmax = params.max_speed or 2.0 * math.sqrt(2.0 * max(gnorm, 1e-3) * domain.height) + 1.0
@@ -322,6 +321,14 @@ class SolverBase:
 
     def reset(self):
         """Forget what the solver carries from step to step (warm starts); called after ``settle``."""
+
+    def resume_state(self) -> dict:
+        """What the solver carries from step to step, as numpy arrays (saved with each frame of a
+        ``sim.h5`` being written, so that a killed run resumes to the uninterrupted result)."""
+        return {}
+
+    def load_resume_state(self, state: dict) -> None:
+        """Take back what ``resume_state`` gave."""
 
 
 @dataclass
@@ -371,31 +378,33 @@ def settle(solver, x: torch.Tensor, v: torch.Tensor, *, seconds: float, damping:
 
 
 def run_frames(solver, x: torch.Tensor, v: torch.Tensor, *, fps: float, seconds: float,
-               progress=None, measure_every_step: bool = True, on_frame=None) -> FrameResult:
+               progress=None, measure_every_step: bool = True, on_frame=None, start_frame: int = 0) -> FrameResult:
     """Advance ``solver`` from t = 0 and record frames at k / fps. Logs, per step, the simulated
     time, wall-clock seconds, dt, solver iterations and the independently measured density error
     and energy, so that error can be plotted against run time. ``on_frame(positions, velocities,
-    time, measures)`` is called with each recorded frame (numpy), e.g. to write it at once."""
+    frame index, measures)`` is called with each recorded frame (numpy), e.g. to write it at once.
+    ``start_frame`` k > 0: (x, v) is frame k's state (a resumed run), frames k + 1 on are recorded;
+    each frame starts at exactly k / fps, so a resumed run steps as the uninterrupted one did."""
     if fps <= 0 or seconds < 0:
         raise InputError("simulate", f"fps must be positive and seconds non-negative (got {fps}, {seconds})")
     n_frames = int(round(seconds * fps)) + 1
     res = FrameResult()
     per_frame: dict[str, list] = {}
 
-    def record_frame(m):
+    def record_frame(m, k):
         res.positions.append(x.detach().cpu().numpy().copy())
         res.velocities.append(v.detach().cpu().numpy().copy())
-        for k, val in m.items():
-            per_frame.setdefault(k, []).append(val)
+        for key, val in m.items():
+            per_frame.setdefault(key, []).append(val)
         if on_frame is not None:
-            on_frame(res.positions[-1], res.velocities[-1], len(res.positions) - 1, m)
+            on_frame(res.positions[-1], res.velocities[-1], k, m)
 
-    m0 = solver.measure(x, v)
-    record_frame(m0)
-    t, step = 0.0, 0
+    if start_frame == 0:
+        record_frame(solver.measure(x, v), 0)
+    step = 0
     wall0 = time.perf_counter()
-    for f in range(1, n_frames):
-        t_end = f / fps
+    for f in range(start_frame + 1, n_frames):
+        t, t_end = (f - 1) / fps, f / fps
         while t < t_end - 1e-12:
             dt_max = t_end - t
             info = solver.step(x, v, dt_max)
@@ -406,7 +415,7 @@ def run_frames(solver, x: torch.Tensor, v: torch.Tensor, *, fps: float, seconds:
             if measure_every_step:
                 entry.update(solver.measure(x, v))
             res.steps.append(entry)
-        record_frame(res.steps[-1] if measure_every_step and res.steps else solver.measure(x, v))
+        record_frame(res.steps[-1] if measure_every_step and res.steps else solver.measure(x, v), f)
         if progress:
             progress(f, n_frames - 1, t, res.steps[-1] if res.steps else {})
     keys = ("density_err_mean", "density_err_max", "kinetic", "potential")

@@ -132,6 +132,16 @@ class DFSPH(SolverBase):
     def reset(self):
         self._kappa = self._kappa_v = None
 
+    def resume_state(self) -> dict:
+        """The warm starts of the two pressure solves."""
+        return {k: getattr(self, "_" + k).detach().cpu().numpy() for k in ("kappa", "kappa_v")
+                if getattr(self, "_" + k) is not None}
+
+    def load_resume_state(self, state: dict) -> None:
+        dev = self.wall.device
+        for k in ("kappa", "kappa_v"):
+            setattr(self, "_" + k, torch.as_tensor(state[k], device=dev) if k in state else None)
+
     # ---- density and the DFSPH factor -------------------------------------------------------------
     def _wall_self(self):
         """Density and neighbour count of each wall particle from the other wall particles (static)."""

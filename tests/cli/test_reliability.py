@@ -215,7 +215,10 @@ def test_a_dataset_being_rendered_is_not_rendered_into_by_a_second_process(base,
         holder.kill()
         holder.wait()
 
-def test_simulate_killed_leaves_an_incomplete_file_and_a_rerun_equals_an_uninterrupted_one(tmp_path):
+def test_simulate_killed_anywhere_resumes_from_its_last_frame_to_the_uninterrupted_result(tmp_path):
+    """SIGKILL after a random number of frames: the file says incomplete and holds the frames so
+    far; the same command again goes on from the last frame (not from the start) and ends with
+    exactly the uninterrupted run's frames."""
     import signal
 
     import numpy as np
@@ -243,5 +246,11 @@ def test_simulate_killed_leaves_an_incomplete_file_and_a_rerun_equals_an_uninter
     assert not part.complete and 5 <= part.num_frames < full.num_frames
     assert np.array_equal(part.positions, full.positions[: part.num_frames])
     again = _gf(*args, "--out", tmp_path / "b.h5")
-    assert again.wait() == 0, again.communicate()
-    assert read_sim(tmp_path / "b.h5").complete and np.array_equal(read_sim(tmp_path / "b.h5").positions, full.positions)
+    out, err = again.communicate()
+    assert again.returncode == 0, err
+    done = read_sim(tmp_path / "b.h5")
+    assert f"resumed after frame {part.num_frames - 1}" in out and done.config["resumed_after_frame"] == part.num_frames - 1
+    assert done.complete and np.array_equal(done.positions, full.positions)
+    assert np.array_equal(done.velocities, full.velocities) and np.array_equal(done.times, full.times)
+    for k in ("density_err_mean", "kinetic"):
+        np.testing.assert_array_equal(done.stats[k], full.stats[k])

@@ -315,3 +315,34 @@ def test_viscosity_boundary_free_slip_keeps_sliding_no_slip_brakes(solver):
     assert speed["no-slip"] < 0.8 * speed["free-slip"], speed
     with pytest.raises(InputError, match="viscosity_boundary"):
         make_solver(solver, s / 2, domain, {"rest_density": 1000.0}, viscosity_boundary="sticky")
+
+
+@pytest.mark.parametrize("solver", ["dfsph", "pbf"])
+def test_an_interrupted_simulation_resumes_only_with_the_same_settings(solver, tmp_path):
+    """simulate(out=...) interrupted at frame 6 goes on from there when called again the same
+    way (exactly the uninterrupted frames); with other settings it starts afresh."""
+    from gf_core.formats.hdf5 import read_sim
+    from gf_core.sim import simulate
+
+    def stop_at_6(f, n, t, last):
+        if f == 6:
+            raise KeyboardInterrupt
+
+    import h5py
+
+    kw = dict(particles=300, fps=20, seconds=0.6, solver=solver)
+    full, _ = simulate("water_cube", out=tmp_path / "full.h5", **kw)
+    with pytest.raises(KeyboardInterrupt):
+        simulate("water_cube", out=tmp_path / "s.h5", progress=stop_at_6, **kw)
+    part = read_sim(tmp_path / "s.h5")
+    assert not part.complete and part.num_frames == 7
+    sim, _ = simulate("water_cube", out=tmp_path / "s.h5", **kw)
+    assert sim.config["resumed_after_frame"] == 6 and sim.complete
+    assert np.array_equal(sim.positions, full.positions) and np.array_equal(sim.velocities, full.velocities)
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        assert "resume_state" not in f  # dropped once complete
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate("water_cube", out=tmp_path / "s.h5", progress=stop_at_6, **kw)
+    other, _ = simulate("water_cube", out=tmp_path / "s.h5", **{**kw, "seconds": 0.5})
+    assert "resumed_after_frame" not in other.config and other.num_frames == 11 and read_sim(tmp_path / "s.h5").complete
