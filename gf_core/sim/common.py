@@ -76,8 +76,8 @@ def estimate_rest_state(positions, kernel, where: str = "simulate", iterations: 
     packing. The spacing is the lattice spacing with that same rest volume (a lattice of spacing d
     has V = c d^3, c = ``lattice_volume(W, 2, 1)``): the wall particles, laid on a lattice of that
     spacing, then have the fluid's density too. (The median nearest-neighbour distance, the first
-    guess, is 15-20% below the mean spacing of a disordered liquid; walls laid at it are 1.7x too
-    dense and throw the fluid off the floor.) Fixed point of d -> (V(h = 2 d) / c)^(1/3), a few
+    guess, is below the mean spacing of a disordered liquid; walls laid at it are too dense and
+    throw the fluid off the floor.) Fixed point of d -> (V(h = 2 d) / c)^(1/3), a few
     rounds from the nearest-neighbour guess. Returns (spacing, V)."""
     x = torch.as_tensor(np.asarray(positions), dtype=torch.float64)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 2:
