@@ -227,13 +227,14 @@ class Decoder(nn.Module):
         return [n for n, on in ((COLOR_OUTPUT, c.color_residuals), (OPACITY_OUTPUT, c.opacity_residuals))
                 if on and self.knots is not None]
 
-    def residual_at(self, tau_t: torch.Tensor, name: str):
+    def residual_at(self, tau_t: torch.Tensor, name: str, coef=None):
         """R(tau) (T, N, k) and dR/dtau (T, N, k) of output ``name``: between the knots as
-        ``cfg.residual_interpolation`` says, constant outside them."""
+        ``cfg.residual_interpolation`` says, constant outside them. ``coef``: the Hermite
+        coefficients of ``tau_t`` when the caller has them (one evaluation for all outputs)."""
         k = self.knots
         r, free = getattr(self, RESIDUAL_PREFIX + name), self.knot_free
         if self.cfg.residual_interpolation == "hermite":
-            idx, wv, wd = hermite_coefficients(k, self.tangents, tau_t)
+            idx, wv, wd = coef if coef is not None else hermite_coefficients(k, self.tangents, tau_t)
             rows = r[:, idx] * free[idx][None, :, :, None]  # (N, T, 4, k): the four knots' rows only
             return torch.einsum("ntfk,tf->tnk", rows, wv.to(r.dtype)), torch.einsum("ntfk,tf->tnk", rows, wd.to(r.dtype))
         tc = tau_t.clamp(k[0], k[-1])
@@ -277,13 +278,19 @@ class Decoder(nn.Module):
         between = self.cfg.time_interpolation == "knots" and self.knots is not None and \
             (with_velocity or isinstance(taus, torch.Tensor) or
              any(not isinstance(t, (int, float)) or np.abs(self._knots_np - t).min() > 1e-9 for t in taus))
+        hermite = self.knots is not None and self.cfg.residual_interpolation == "hermite"
+        coef = hermite_coefficients(self.knots, self.tangents, tau_t) if hermite or between else None
         if between:  # Phi at the knots, joined like the residuals (at a knot itself this is Phi there)
-            mlp, vmlp = self._mlp_between_knots(tau_t, feats, with_velocity, own=features is None)
+            mlp, vmlp = self._mlp_between_knots(tau_t, feats, with_velocity, own=features is None, coef=coef)
         elif keys is not None:
             mlp = self._frozen_mlp(keys, tau_t)
         else:
             mlp, vmlp = self._mlp(tau_t, feats, with_velocity)
         tau0 = torch.full((1,), float(self.cfg.canonical_time), dtype=feats.dtype, device=feats.device)
+        coef0 = hermite_coefficients(self.knots, self.tangents, tau0) \
+            if hermite and not self.cfg.canonical_residual else None
+        if not hermite:
+            coef = None
         out = {}
         k = 0
         for name, width in OUTPUTS.items():
@@ -291,21 +298,23 @@ class Decoder(nn.Module):
             if with_velocity and name == "dp":
                 out["vp"] = vmlp
             if self.knots is not None:
-                r, dr = self.residual_at(tau_t, name)
-                out[name] = out[name] + r - (0.0 if self.cfg.canonical_residual else self.residual_at(tau0, name)[0])
+                r, dr = self.residual_at(tau_t, name, coef)
+                out[name] = out[name] + r - (0.0 if self.cfg.canonical_residual else
+                                             self.residual_at(tau0, name, coef0)[0])
                 if with_velocity and name == "dp":
                     out["vp"] = out["vp"] + dr
             k += width
         for name in self.appearance_outputs():
-            r, _ = self.residual_at(tau_t, name)
-            out[name] = r if self.cfg.canonical_residual else r - self.residual_at(tau0, name)[0]
+            r, _ = self.residual_at(tau_t, name, coef)
+            out[name] = r if self.cfg.canonical_residual else r - self.residual_at(tau0, name, coef0)[0]
         return out
 
-    def _mlp_between_knots(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool, own: bool):
+    def _mlp_between_knots(self, tau_t: torch.Tensor, feats: torch.Tensor, with_velocity: bool, own: bool,
+                           coef=None):
         """(tau - tau0) Phi (T, N, outputs) for ``time_interpolation = "knots"``: Phi's output at the
         four knots around each time, weighted like the residuals (``hermite_coefficients``), and the
         position part's derivative along tau (T, N, 3) with ``with_velocity``, else None."""
-        idx, wv, wd = hermite_coefficients(self.knots, self.tangents, tau_t)
+        idx, wv, wd = coef if coef is not None else hermite_coefficients(self.knots, self.tangents, tau_t)
         uniq = torch.unique(idx)
         kt = self.knots[uniq]
         if self._frozen is not None and own:
