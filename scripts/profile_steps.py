@@ -5,8 +5,9 @@ take the most device and host time (torch.profiler), for one dataset and config.
                                     [--steps K] [--out FILE.json]
 
 Runs the trainer's own ``step`` (no time budget, no densify) for K steps in phase 1, 2 (window
-over the whole clip) and 3, synchronising around each timed block, then profiles K steps of
-phase 3 (or --profile-phase). A diagnostic for choosing what to speed up; the figures that count are the
+over the whole clip) and 3, synchronising around each timed block, counts the ATen operators of
+one step of phase 3 (or --profile-phase; on a GPU each is about one kernel launch), then profiles
+K such steps. A diagnostic for choosing what to speed up; the figures that count are the
 reconstruction benchmarks' (BENCHMARKS.md).
 """
 
@@ -64,6 +65,20 @@ def main() -> None:
         sync()
         rec["ms_per_step"][f"phase{phase}"] = 1e3 * (time.perf_counter() - t0) / a.steps
         print(f"phase {phase}: {rec['ms_per_step'][f'phase{phase}']:.1f} ms per step", flush=True)
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class CountOps(TorchDispatchMode):  # every ATen operator a step dispatches (forward and backward)
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            CountOps.n += 1
+            return func(*args, **(kwargs or {}))
+
+    tr.phase = a.profile_phase
+    with CountOps():
+        tr.step(0.95 if a.profile_phase == 2 else 0.5, 0.5)
+    rec["aten_ops_per_step"] = CountOps.n
+    print(f"phase {a.profile_phase}: {CountOps.n} ATen operators per step", flush=True)
     from torch.profiler import ProfilerActivity, profile
 
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])

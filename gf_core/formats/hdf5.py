@@ -52,34 +52,6 @@ def atomic_path(path: "str | os.PathLike[str]"):
 
 
 @contextlib.contextmanager
-def folder_lock(folder, what: str = "run"):
-    """Hold ``folder/.lock`` (an exclusive advisory lock) for the block: a second process that
-    would write the same folder is refused at once with one line instead of mixing its files in.
-    The lock goes with the process, so a killed run leaves nothing that blocks a resume."""
-    import fcntl
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    f = open(folder / ".lock", "a+")
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        f.seek(0)
-        holder = f.read().strip() or "another process"
-        f.close()
-        raise InputError(folder, f"another process ({holder}) is writing this {what} folder; wait for it "
-                                 "to finish or choose another --out") from None
-    try:
-        f.seek(0)
-        f.truncate()
-        f.write(f"pid {os.getpid()}")
-        f.flush()
-        yield
-    finally:
-        f.close()
-
-
-@contextlib.contextmanager
 def output_lock(target, what: str):
     """Hold ``.NAME.lock`` beside the output ``target`` (a file or a folder) for the block, so
     that a second process writing the same output is refused at once with one line instead of
@@ -88,7 +60,7 @@ def output_lock(target, what: str):
     killed run leaves nothing that blocks a resume."""
     import fcntl
 
-    target = Path(target)
+    target = Path(target).resolve()
     target.parent.mkdir(parents=True, exist_ok=True)
     lock = target.parent / f".{target.name}.lock"
     while True:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..errors import ReconstructionError
-from ..formats.hdf5 import folder_lock, write_recon
+from ..formats.hdf5 import output_lock, write_recon
 from ..render import render
 from . import checkpoint, schedule
 from .config import ReconConfig
@@ -260,7 +260,8 @@ class Trainer:
 
     # ---- the run --------------------------------------------------------------------------------------
     def run(self, *, resume: bool = False) -> dict:
-        with folder_lock(self.out, "reconstruction"):
+        self.out.mkdir(parents=True, exist_ok=True)
+        with output_lock(self.out, "reconstruction folder"):
             return self._run(resume=resume)
 
     def _end_phase(self, now: float, reason: str, *, last: bool = False) -> None:
