@@ -153,6 +153,8 @@ def write_usd_gaussians(path, samples, *, fps: float, start: float, end: float, 
     G and B), ``radiance:sphericalHarmonicsDegree``; ``displayColor`` / ``displayOpacity`` for
     viewers that draw points. The prim's type and attributes are authored by name, so any pxr
     writes them (Blender's included); readers of 26.03 and later see the typed schema."""
+    from .decoder_np import sigmoid, unit_quaternions
+
     bundled_module("pxr", extra_paths)
     from pxr import Gf, Sdf, Usd, Vt
 
@@ -180,11 +182,9 @@ def write_usd_gaussians(path, samples, *, fps: float, start: float, end: float, 
         if (d + 1) ** 2 != k or (degree is not None and d != degree):
             raise ValueError(f"{k} SH coefficients per particle is not (degree + 1)^2 of one degree")
         degree = d
-        q = np.asarray(q, np.float64)
-        norm = np.linalg.norm(q, axis=1, keepdims=True)
-        q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
+        q = unit_quaternions(q)
         scales = np.exp(np.asarray(log_s, np.float64))
-        opacity = 1.0 / (1.0 + np.exp(-np.asarray(logit_o, np.float64)))
+        opacity = sigmoid(np.asarray(logit_o, np.float64))
         tc = Usd.TimeCode(float(code))
         attrs["positions"].Set(Vt.Vec3fArray.FromNumpy(p), tc)
         # GfQuatf's memory (and so FromNumpy's columns) is the imaginary part, then the real one

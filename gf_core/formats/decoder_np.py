@@ -325,6 +325,13 @@ def centre_box(lo, hi, inset: float) -> tuple[np.ndarray, np.ndarray]:
     return lo + d, hi - d
 
 
+def unit_quaternions(q) -> np.ndarray:
+    """Quaternions w x y z (N, 4) of any norm as unit ones (a zero one becomes the identity)."""
+    q = np.asarray(q, np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    return np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
+
+
 def sigmoid(x):
     return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float32)))
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .decoder_np import base_color, sigmoid
+from .decoder_np import base_color, sigmoid, unit_quaternions
 from .hdf5 import atomic_path
 
 GLTF_EXTENSION = "KHR_gaussian_splatting"
@@ -26,9 +26,7 @@ def write_gaussians_glb(path, means, log_scales, quats, logit_opacity, sh, *, ge
     sh = np.asarray(sh, np.float32)
     if sh.shape[2] == 1:  # grayscale: the same coefficients in R, G and B
         sh = np.repeat(sh, 3, axis=2)
-    q = np.asarray(quats, np.float64)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 1e-12, q / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0]))
+    q = unit_quaternions(quats)
     opacity = sigmoid(np.asarray(logit_opacity, np.float32))
     columns = [("POSITION", "VEC3", np.asarray(means, np.float32)),
                ("COLOR_0", "VEC4", np.concatenate([base_color(sh[:, 0, :]), opacity[:, None]], 1)),
