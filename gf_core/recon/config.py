@@ -34,6 +34,7 @@ class ModelConfig:
     carve_threshold: float = 0.5   # alpha a carved point must see in every view that sees it
     scene_box: list = field(default_factory=list)  # [[x0, y0, z0], [x1, y1, z1]]; empty: dataset/cameras
     floor: list = field(default_factory=list)      # [z]: the floor's height alone (metres); empty: unknown
+    floor_estimate: str = "silhouettes"  # without a known floor: "silhouettes" (recon/initial.py) | "none"
     wall_inset: float = 0.5        # particle centres stay this many particle spacings inside the scene box
 
 
@@ -136,6 +137,8 @@ class ReconConfig:
             raise InputError(where, f"model.sh_degree must be 0-3, got {m.sh_degree}")
         if m.init not in ("carve", "random"):
             raise InputError(where, f"model.init must be 'carve' or 'random', got {m.init!r}")
+        if m.floor_estimate not in ("silhouettes", "none"):
+            raise InputError(where, f"model.floor_estimate must be 'silhouettes' or 'none', got {m.floor_estimate!r}")
         if m.init_particles < 1 or m.max_particles < 1:
             raise InputError(where, "model.init_particles and model.max_particles must be >= 1")
         if not 0 < m.init_opacity < 1:

@@ -6,6 +6,7 @@ derived from the cameras: the point nearest to every optical axis (least squares
 half-size of the smallest half-width that any camera sees at that distance. A floor height alone
 (``model.floor``, ``--floor``, or a dataset's ``floor``: a tank or a table whose walls are not
 known) replaces the box's lowest z; the box's own floor is known only when the box is given.
+Without either, the floor is estimated from the masks (``estimate_floor``, ``model.floor_estimate``).
 
 Carving (space carving, Kutulakos & Seitz 2000): candidate points drawn uniformly in the box are
 kept when they project onto alpha >= threshold in every view that sees them (and at least one
@@ -66,6 +67,90 @@ def scene_box(cfg_box, dataset, cameras: list[Camera], cfg_floor=()) -> tuple[np
                                                    f"scene (which ends at z = {hi[2]:.3g} m)")
             return np.array([lo[0], lo[1], z]), hi, f"cameras, floor from {src}"
     return lo, hi, "cameras"
+
+
+def lowest_edge_points(views: list[tuple[Camera, torch.Tensor]], lo, hi, *, threshold: float = 0.5,
+                       steps: int = 384, max_rays: int = 128) -> np.ndarray:
+    """(M, 3) points where the fluid of one frame, seen in its masks ``views`` [(camera, alpha)],
+    has its lowest edge (gravity along -z).
+
+    A view that looks down at fluid resting on a floor sees the fluid's lowest edge where it
+    touches the floor on its near side, and the ray through that edge enters the visual hull there:
+    the other views fix where the fluid begins along it. For every image column (at most
+    ``max_rays`` per view, the image's own "down" taken as the direction of world -z) the ray
+    through the silhouette's lowest pixel is marched through the box ``lo``..``hi`` in ``steps``
+    samples, and the point where it first enters the hull is kept. Views whose optical axis does not
+    point down are skipped."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    entry = []
+    for cam, alpha in views:
+        a = alpha.detach().cpu().numpy() if isinstance(alpha, torch.Tensor) else np.asarray(alpha)
+        c2w = cam.camera_to_world
+        if c2w[2, 2] >= 0.0:
+            continue
+        uv0, _ = cam.project(0.5 * (lo + hi))
+        uv1, _ = cam.project(0.5 * (lo + hi) - np.array([0.0, 0.0, 0.01 * float(np.linalg.norm(hi - lo))]))
+        down = (uv1 - uv0).ravel()
+        if not np.all(np.isfinite(down)):
+            continue
+        m = a >= threshold
+        if abs(down[1]) >= abs(down[0]):   # world down runs along the image's rows
+            cols = np.flatnonzero(m.any(0))
+            if not len(cols):
+                continue
+            cols = cols[np.linspace(0, len(cols) - 1, min(len(cols), max_rays)).round().astype(int)]
+            sub = m[:, cols]
+            rows = (sub.shape[0] - 1 - np.argmax(sub[::-1], 0)) if down[1] > 0 else np.argmax(sub, 0)
+        else:                              # along its columns
+            rows = np.flatnonzero(m.any(1))
+            if not len(rows):
+                continue
+            rows = rows[np.linspace(0, len(rows) - 1, min(len(rows), max_rays)).round().astype(int)]
+            sub = m[rows, :]
+            cols = (sub.shape[1] - 1 - np.argmax(sub[:, ::-1], 1)) if down[0] > 0 else np.argmax(sub, 1)
+        d = np.stack([(cols + 0.5 - cam.cx) / cam.fx, (rows + 0.5 - cam.cy) / cam.fy, np.ones(len(cols))], 1) @ c2w[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = cam.center
+        with np.errstate(divide="ignore", invalid="ignore"):  # the part of each ray inside the box (slabs)
+            t0, t1 = (lo - o) / d, (hi - o) / d
+        t_near = np.nanmax(np.minimum(t0, t1), 1).clip(min=0.0)
+        t_far = np.nanmin(np.maximum(t0, t1), 1)
+        ok = t_far > t_near
+        if not ok.any():
+            continue
+        d, t_near, t_far = d[ok], t_near[ok], t_far[ok]
+        s = t_near[:, None] + (t_far - t_near)[:, None] * (np.arange(steps) + 0.5)[None, :] / steps
+        P = o + d[:, None, :] * s[..., None]
+        inside = in_hull(P.reshape(-1, 3), views, threshold).reshape(P.shape[:2])
+        hit = inside.any(1)
+        entry.append(P[np.flatnonzero(hit), inside.argmax(1)[hit]])
+    return np.concatenate(entry) if entry else np.zeros((0, 3))
+
+
+def estimate_floor(views, lo, hi, *, threshold: float = 0.5, max_frames: int = 30, quantile: float = 0.2,
+                   tolerance: float = 0.02, min_frames: int = 3) -> float | None:
+    """The floor of a clip from its masks, or None: a frame's lowest edge (``lowest_edge_points``)
+    is at the ``quantile`` of its points' heights (a few rays enter the hull low where no view fixes
+    the fluid's extent); fluid at rest on a floor keeps that height from frame to frame, falling
+    fluid does not. So the floor is the median lowest edge of the frames whose lowest edge lies
+    within ``tolerance`` x the box's height of the lowest one, when there are at least
+    ``min_frames`` (and a tenth of the frames) of them; None otherwise, without alpha, or when no
+    view looks down. At most ``max_frames`` frames spread over the clip are looked at."""
+    times = views.unique_times
+    times = times[np.unique(np.linspace(0, len(times) - 1, min(len(times), max_frames)).round().astype(int))]
+    edges = []
+    for t in times:
+        idx = views.at_time(t)
+        if not idx or any(views.alphas[i] is None for i in idx):
+            continue
+        E = lowest_edge_points([(views.cameras[i], views.alphas[i]) for i in idx], lo, hi, threshold=threshold)
+        if len(E) >= 8:
+            edges.append(float(np.quantile(E[:, 2], quantile)))
+    if not edges:
+        return None
+    z = np.asarray(edges)
+    near = z[z <= z.min() + tolerance * float(hi[2] - lo[2])]
+    return float(np.median(near)) if len(near) >= max(min_frames, 0.1 * len(times)) else None
 
 
 def floor_known(source: str) -> bool:
@@ -169,11 +254,20 @@ def start(cfg, views, dataset, *, t_canon: float, time_map, decoder_cfg, knots, 
     canon = views.at_time(t_canon)
     lo, hi, src = scene_box(mc.scene_box, dataset, [views.cameras[i] for i in canon], mc.floor)
     if not floor_known(src):
-        log("warning: no scene box and no floor are known (none given, none in the dataset), so the box is "
-            "guessed from the cameras: nothing keeps particles inside the real container or above its "
-            "floor (where no view can tell, they sink below it), and the floor and settle terms are off. "
-            "Give the container with --scene-box=X0,Y0,Z0,X1,Y1,Z1 or at least its floor with --floor Z "
-            "(metres, z up).")
+        z = estimate_floor(views, lo, hi, threshold=mc.carve_threshold) if mc.floor_estimate == "silhouettes" else None
+        if z is not None and lo[2] < z < hi[2]:
+            lo = np.array([lo[0], lo[1], z])
+            src = "cameras, floor from the silhouettes"
+            log(f"warning: no scene box and no floor are known (none given, none in the dataset): the box is "
+                f"guessed from the cameras, and the floor, z = {z:.4g} m, from the masks' lowest edges "
+                f"(model.floor_estimate). Nothing keeps particles inside the real container's walls. Give the "
+                f"container with --scene-box=X0,Y0,Z0,X1,Y1,Z1 or its floor with --floor Z (metres, z up).")
+        else:
+            log("warning: no scene box and no floor are known (none given, none in the dataset, none seen in "
+                "the masks), so the box is guessed from the cameras: nothing keeps particles inside the real "
+                "container or above its floor (where no view can tell, they sink below it), and the floor "
+                "and settle terms are off. Give the container with --scene-box=X0,Y0,Z0,X1,Y1,Z1 or at "
+                "least its floor with --floor Z (metres, z up).")
     n0 = min(mc.init_particles, mc.max_particles)
     if mc.init == "carve" and all(views.alphas[i] is not None for i in canon):
         pts, volume = carve(lo, hi, [(views.cameras[i], views.alphas[i]) for i in canon], n0,
@@ -203,4 +297,4 @@ def start(cfg, views, dataset, *, t_canon: float, time_map, decoder_cfg, knots, 
     return Start(model, volume, spacing, cfg.density.h_factor * spacing, src, init_source)
 
 
-__all__ = ["Start", "start", "floor_known", "scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]
+__all__ = ["Start", "start", "floor_known", "lowest_edge_points", "estimate_floor", "scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]

@@ -346,10 +346,17 @@ def test_scene_box_and_floor_reach_the_trainer_and_recon_h5(small_blob, tmp_path
         p.write_text(json.dumps(meta))
     ds = load_dataset(root)
     said = []
+    # a blob that falls through the clip rests on no floor: none is seen in its masks
     tr = Trainer(quick_config(), ds, out=tmp_path / "a", log=said.append)
     tr.initialise()
     assert tr.box_source == "cameras"
     assert any("--scene-box" in s and "--floor" in s and "floor and settle terms are off" in s for s in said)
+    said.clear()
+    tr = Trainer(quick_config(model={"floor_estimate": "none"}), ds, out=tmp_path / "a2", log=said.append)
+    tr.initialise()
+    assert tr.box_source == "cameras" and any("floor and settle terms are off" in s for s in said)
+    with pytest.raises(InputError, match="model.floor_estimate must be"):
+        quick_config(model={"floor_estimate": "ground"})
     tr = Trainer(quick_config(model={"floor": [-0.05]}), ds, out=tmp_path / "b", log=quiet)
     tr.initialise()
     assert tr.box_source == "cameras, floor from config" and tr.model.bounds.lo[2] == pytest.approx(-0.05)
