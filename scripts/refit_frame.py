@@ -49,7 +49,7 @@ def trainer_steps(recon, dataset, when, iters, overrides):
                  out=Path(tempfile.mkdtemp()), log=lambda *_: None)
     tr.initialise()
     tr.model = FluidModel.from_recon(r)
-    tr.ctx.spacing, tr.ctx.h = float(r.config.get("spacing", tr.spacing)), float(r.config.get("h", tr.h))
+    tr.ctx.spacing, tr.ctx.h = float(r.config.get("spacing", tr.ctx.spacing)), float(r.config.get("h", tr.ctx.h))
     tr._make_optimizer()
     tr.phase, tr.plateau = 3, Plateau(10 ** 9, 0.0)
     t = float(tr.views.unique_times[np.argmin(np.abs(tr.views.unique_times - when))])

@@ -148,6 +148,14 @@ def learning_rates(cfg: ReconConfig, base: dict, phase: int, run_progress: float
     return out
 
 
+def refine_stop(cfg: ReconConfig, phase: int, phase_it: int, phase_progress: float, static: bool) -> int:
+    """The phase iteration at which densify/prune stops: refinement ends for the last
+    (1 - densify.stop_fraction) of the phase's seconds (with a time budget) or of its cap."""
+    if cfg.train.time_budget_s > 0:
+        return phase_it + 1 if phase_progress < cfg.densify.stop_fraction else 0
+    return int(cfg.densify.stop_fraction * phase_cap(cfg, phase, static))
+
+
 def phase_end(cfg: ReconConfig, phase: int, phase_it: int, now: float, phase_progress: float, static: bool,
               plateau: "Plateau") -> str | None:
     """Why the current phase ends now, or None: with a time budget at its share of the seconds and

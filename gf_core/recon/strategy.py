@@ -104,6 +104,25 @@ class DensifyConfig:
     prune_max_scale: float = 3.0   # in particle spacings
 
 
+def make_optimizer(cfg, model: FluidModel) -> tuple[ParticleOptimizer, dict]:
+    """The run's optimiser and its base rates (``[lr]``): the means' rate scaled by the box's
+    diagonal (3DGS's scene extent), each residual group at ``lr.residuals`` x the rate of what it
+    corrects (means, log scales, quaternions, base colour, opacity) with Adam's beta1
+    ``lr.residuals_beta1``, the decoder's MLP at ``lr.mlp``."""
+    lr = cfg.lr
+    lrs = {"means": lr.means * model.bounds.extent, "log_scales": lr.log_scales, "quats": lr.quats,
+           "logit_opacity": lr.logit_opacity, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
+    dec = model.decoder
+    if dec is not None:
+        lrs["features"] = lr.features
+        for name in dec.residuals():
+            base = {"dp": "means", "ds": "log_scales", "dr": "quats", "dc": "sh_dc",
+                    "do": "logit_opacity"}[name[len("residual_"):]]
+            lrs[name] = lr.residuals * lrs[base]
+    betas = {name: (lr.residuals_beta1, 0.999) for name in lrs if name.startswith("residual_")}
+    return ParticleOptimizer(model, lrs, mlp_lr=lr.mlp, betas=betas), lrs
+
+
 @dataclass
 class DensifyPrune:
     cfg: DensifyConfig
@@ -198,4 +217,4 @@ class DensifyPrune:
         return report
 
 
-__all__ = ["ParticleOptimizer", "DensifyConfig", "DensifyPrune"]
+__all__ = ["ParticleOptimizer", "make_optimizer", "DensifyConfig", "DensifyPrune"]

@@ -36,10 +36,9 @@ from .result import result_config
 from .runlog import RunLog
 from .sampling import Sampler
 from .schedule import Plateau
-from .strategy import DensifyPrune, ParticleOptimizer
+from .strategy import DensifyPrune, make_optimizer
 from . import terms as registry
-from .terms.image import psnr
-from .views import dataset_fingerprint, load_views
+from .views import dataset_fingerprint, heldout_psnr, load_views
 
 CHECKPOINT = checkpoint.CHECKPOINT
 
@@ -81,14 +80,6 @@ class Trainer:
     def model(self, m):
         self.ctx.model = m
 
-    @property
-    def spacing(self) -> float:
-        return self.ctx.spacing
-
-    @property
-    def h(self) -> float:
-        return self.ctx.h
-
     def knots(self) -> list[float] | None:
         """The decoder residuals' knots: the training frames' tau (None without residuals)."""
         if self.static or not self.cfg.decoder.residuals:
@@ -105,20 +96,9 @@ class Trainer:
         self._make_optimizer()
 
     def _make_optimizer(self) -> None:
-        lr = self.cfg.lr
-        lrs = {"means": lr.means * self.model.bounds.extent, "log_scales": lr.log_scales, "quats": lr.quats,
-               "logit_opacity": lr.logit_opacity, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
-        dec = self.model.decoder
-        if dec is not None:
-            lrs["features"] = lr.features
-            for name in dec.residuals():  # residual_dp/ds/dr/dc/do at the rates of means/log_scales/quats/sh_dc/opacity
-                base = {"dp": "means", "ds": "log_scales", "dr": "quats", "dc": "sh_dc",
-                        "do": "logit_opacity"}[name[len("residual_"):]]
-                lrs[name] = lr.residuals * lrs[base]
-        self.base_lrs = lrs
-        betas = {name: (lr.residuals_beta1, 0.999) for name in lrs if name.startswith("residual_")}
-        self.opt = ParticleOptimizer(self.model, lrs, mlp_lr=lr.mlp, betas=betas)
+        self.opt, self.base_lrs = make_optimizer(self.cfg, self.model)
         self.strategy = DensifyPrune(self.cfg.densify, max_particles=self.cfg.model.max_particles)
+        dec = self.model.decoder
         if dec is not None:  # train.mlp_precision: the decoder's training passes in bfloat16
             dec.mlp_dtype = torch.bfloat16 if mlp_low_precision(self.cfg.train.mlp_precision, self.device) else None
             if dec.mlp_dtype is not None:
@@ -192,13 +172,7 @@ class Trainer:
             self.model.project_()
             self.bad_steps = 0
         else:
-            self.opt.zero_grad()
-            self.bad_steps += 1
-            self.total_bad_steps += 1
-            self.log(f"iteration {self.iteration}: non-finite loss or gradient, step skipped ({self.bad_steps} in a row)")
-            if self.bad_steps >= cfg.train.max_bad_steps:
-                raise ReconstructionError(f"{self.bad_steps} consecutive non-finite steps at iteration {self.iteration} "
-                                          f"(phase {self.phase}); the last checkpoint is {self.out / CHECKPOINT}")
+            self._skip_step()
         term_vals = dict(zip(terms, vals[1:1 + len(terms)]))
         img_mse = [0.0] * len(outs)  # back in the order the images were drawn (per time, per view)
         for k, m in zip((k for grp in shots.values() for k, _, _ in grp), vals[1 + len(terms):]):
@@ -209,36 +183,29 @@ class Trainer:
         return {"terms": term_vals, "weights": w, "loss": sum(term_vals.values()), "train_psnr": float(np.mean(psnrs)),
                 "t": times[0], "finite": ok}
 
+    def _skip_step(self) -> None:
+        """A step whose loss or gradients are not finite: its gradients dropped, reported, and the
+        run stopped after ``train.max_bad_steps`` in a row."""
+        self.opt.zero_grad()
+        self.bad_steps += 1
+        self.total_bad_steps += 1
+        self.log(f"iteration {self.iteration}: non-finite loss or gradient, step skipped ({self.bad_steps} in a row)")
+        if self.bad_steps >= self.cfg.train.max_bad_steps:
+            raise ReconstructionError(f"{self.bad_steps} consecutive non-finite steps at iteration {self.iteration} "
+                                      f"(phase {self.phase}); the last checkpoint is {self.out / CHECKPOINT}")
+
     def refine(self, phase_progress: float) -> dict:
-        """Densify and prune (``strategy``); no refinement in the last (1 - stop_fraction) of the
-        phase's seconds (with a time budget) or of its cap."""
-        dc = self.cfg.densify
+        """Densify and prune (``strategy``) until the schedule's stop (``schedule.refine_stop``)."""
         if not self.strategy.active(self.phase):
             return {}
-        if self.cfg.train.time_budget_s > 0:
-            stop = self.phase_it + 1 if phase_progress < dc.stop_fraction else 0
-        else:
-            stop = int(dc.stop_fraction * schedule.phase_cap(self.cfg, self.phase, self.static))
+        stop = schedule.refine_stop(self.cfg, self.phase, self.phase_it, phase_progress, self.static)
         rep = self.strategy.refine(self.phase_it, stop, self.model, self.opt, self.ctx.spacing, generator=self.gen)
         if rep and (rep["cloned"] or rep["split"] or rep["pruned"]):
             self.ctx.version += 1
         return rep
 
-    @torch.no_grad()
     def heldout_psnr(self) -> float | None:
-        if self.test is None:
-            return None
-        times = self.test.unique_times
-        pick = times[np.unique(np.linspace(0, len(times) - 1, min(self.cfg.train.eval_frames, len(times))).round()
-                               .astype(int))]
-        vals = []
-        for t in pick:
-            p = self.model.at(float(t) if self.phase > 1 else None)
-            for i in self.test.at_time(float(t)):
-                out = render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"], self.test.cameras[i],
-                             self.test.background, sh_degree=self.model.sh_degree)
-                vals.append(psnr(out.color, self.test.target(i, self.test.background)))
-        return float(np.mean(vals)) if vals else None
+        return heldout_psnr(self.model, self.test, decoded=self.phase > 1, frames=self.cfg.train.eval_frames)
 
     # ---- checkpoints and the result ---------------------------------------------------------------------
     def save_checkpoint(self) -> Path:
@@ -270,6 +237,15 @@ class Trainer:
         self.phase_end_reasons.append({"phase": self.phase, "iteration": self.iteration, "wall_s": round(now, 3),
                                        "reason": reason})
 
+    def _next_phase(self, now: float, reason: str, t_start: float) -> None:
+        self._end_phase(now, reason)
+        self.phase, self.phase_it, self.phase_t0 = self.phase + 1, 0, now
+        self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
+        self.strategy.reset(len(self.model), self.device)
+        self.ctx.drop_neighbours()
+        self.elapsed = time.perf_counter() - t_start
+        self.save_checkpoint()
+
     def _run(self, *, resume: bool = False) -> dict:
         ck, runlog = self.out / CHECKPOINT, RunLog(self.out / "metrics.jsonl", self.progress)
         if resume and ck.exists():
@@ -296,13 +272,7 @@ class Trainer:
                     reason = schedule.phase_end(self.cfg, self.phase, self.phase_it, now, phase_progress, self.static,
                                                 self.plateau)
                     if reason is not None:
-                        self._end_phase(now, reason)
-                        self.phase, self.phase_it, self.phase_t0 = self.phase + 1, 0, now
-                        self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
-                        self.strategy.reset(len(self.model), self.device)
-                        self.ctx.drop_neighbours()
-                        self.elapsed = time.perf_counter() - t_start
-                        self.save_checkpoint()
+                        self._next_phase(now, reason, t_start)
                         continue
                     self.elapsed = now
                     rec = self.step(phase_progress, run_progress)

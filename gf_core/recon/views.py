@@ -11,6 +11,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..render import render
+from .terms.image import psnr
 
 
 @dataclass
@@ -61,6 +63,25 @@ def load_views(ds, device, dtype=torch.float32) -> Views:
     return Views(imgs, alphas, cams, np.asarray(times, np.float64), views, bg, int(ds.channels))
 
 
+@torch.no_grad()
+def heldout_psnr(model, test: Views | None, *, decoded: bool, frames: int) -> float | None:
+    """Mean PSNR of ``model`` in the held-out views ``test`` at ``frames`` of their times spread
+    over the clip (decoded at each time, or the canonical particles when not ``decoded``); None
+    without held-out views."""
+    if test is None:
+        return None
+    times = test.unique_times
+    pick = times[np.unique(np.linspace(0, len(times) - 1, min(frames, len(times))).round().astype(int))]
+    vals = []
+    for t in pick:
+        p = model.at(float(t) if decoded else None)
+        for i in test.at_time(float(t)):
+            out = render(p["means"], p["scales"], p["quats"], p["opacities"], p["sh"], test.cameras[i],
+                         test.background, sh_degree=model.sh_degree)
+            vals.append(psnr(out.color, test.target(i, test.background)))
+    return float(np.mean(vals)) if vals else None
+
+
 def composite(img: torch.Tensor, alpha: torch.Tensor | None, bg: torch.Tensor) -> torch.Tensor:
     """An (H, W, C) image over the background colour ``bg`` (C,) by its alpha (H, W); as it is
     without alpha."""
@@ -88,4 +109,4 @@ def dataset_fingerprint(ds) -> str:
     return h.hexdigest()[:16]
 
 
-__all__ = ["Views", "load_views", "composite", "composited", "dataset_fingerprint"]
+__all__ = ["Views", "load_views", "heldout_psnr", "composite", "composited", "dataset_fingerprint"]

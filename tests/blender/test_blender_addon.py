@@ -29,7 +29,7 @@ DRIFT = 0.6  # m/s along +x: the decoder's last-layer bias, so the fluid visibly
 
 @pytest.fixture(scope="module")
 def addon_zip(tmp_path_factory):
-    from cli.cmd_addon import PLATFORMS, build
+    from gf_cli.cmd_addon import PLATFORMS, build
 
     cache = Path(os.environ.get("GF_WHEEL_CACHE", Path.home() / ".cache" / "gaussfluids" / "wheels"))
     return build(tmp_path_factory.mktemp("dist"), list(PLATFORMS), cache)

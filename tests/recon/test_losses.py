@@ -177,7 +177,7 @@ def test_settle_term_moves_only_its_frames_residual(blob, tmp_path):
     tr.initialise()
     dec = tr.model.decoder
     t = float(tr.views.unique_times[2])  # the blob high in the air
-    nx, ny = int(np.ceil(0.8 / tr.spacing)), int(np.ceil(0.8 / tr.spacing))
+    nx, ny = int(np.ceil(0.8 / tr.ctx.spacing)), int(np.ceil(0.8 / tr.ctx.spacing))
     tr.ctx.memo(("floor", t), lambda: (None, 0, torch.ones(nx, ny, dtype=torch.bool)))  # all of the floor wet
     means = tr.model.at(t)["means"]
     v = settle_at(tr, t, means)
@@ -199,7 +199,7 @@ def test_settle_gate_is_reused_with_the_neighbour_lists_and_rebuilt_with_them(bl
                  out=tmp_path / "run", log=quiet)
     tr.initialise()
     t = float(tr.views.unique_times[2])
-    nx = int(np.ceil(0.8 / tr.spacing))
+    nx = int(np.ceil(0.8 / tr.ctx.spacing))
     tr.ctx.memo(("floor", t), lambda: (None, 0, torch.ones(nx, nx, dtype=torch.bool)))
     calls = []
     orig = settle_term.unsupported
@@ -252,7 +252,7 @@ def test_floor_points_lie_where_the_fluid_rests_on_the_floor(tmp_path, monkeypat
     monkeypatch.setattr(floor_term, "SAMPLES", 8)  # a step's draw: consecutive points of the fixed order, all floor points
     d = floor_samples(tr.ctx, t1)
     assert d.shape == (8, 3) and all(any(np.allclose(x, y) for y in S) for x in d.numpy())
-    assert len(S) > 20 and np.allclose(S[:, 2], 0.5 * tr.spacing)
+    assert len(S) > 20 and np.allclose(S[:, 2], 0.5 * tr.ctx.spacing)
     horiz = np.linalg.norm(S[:, None, :2] - pool[None, :, :2], axis=-1).min(1)
     off = horiz > 1.5 * sp  # beyond the pool's splats: only the floor hidden behind it from every (frontal) view
     assert off.mean() < 0.25 and (S[off, 1] > pool[:, 1].max()).all(), S[off]

@@ -74,7 +74,7 @@ def _upscale(img: np.ndarray, min_size: int = 192) -> np.ndarray:
 
 
 def write(d, t_last: float) -> Path:
-    """Build ``d.out/report.html`` from the demo's outputs (``d``: cli.cmd_demo.Demo)."""
+    """Build ``d.out/report.html`` from the demo's outputs (``d``: gf_cli.cmd_demo.Demo)."""
     from PIL import Image
 
     from gf_core.camera import frontal_arc
