@@ -35,7 +35,7 @@ def register(sub):
 
 
 def run(args) -> int:
-    from gf_core.data import load_dataset
+    from gf_core.data import has_split, load_dataset
     from gf_core.errors import InputError
     from gf_core.eval.evaluate import evaluate, evaluate_continuation
     from gf_core.formats.hdf5 import SIM_FORMAT, file_format, read_recon, read_sim
@@ -68,9 +68,11 @@ def run(args) -> int:
             ds_path = Path(rec)
     train = test = None
     if ds_path is not None:
-        kw = dict(grayscale=r.channels == 1, fps=args.fps, duration=args.duration)
+        # the images as the reconstruction read them (channels, background removal, size)
+        kw = dict(r.config.get("dataset_options") or {}, grayscale=r.channels == 1, fps=args.fps,
+                  duration=args.duration)
         train = load_dataset(ds_path, **kw)
-        if (ds_path / "transforms_test.json").exists() or any(ds_path.glob("view_*/transforms_test.json")):
+        if has_split(ds_path, "test"):
             test = load_dataset(ds_path, split="test", **kw)
     if continuation:
         evaluate_continuation(args.run, dataset=train, test_dataset=test, gt_path=args.gt, device=device, out=args.out)

@@ -49,6 +49,12 @@ def register(sub):
     p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt (default: off)")
     p.add_argument("--force", action="store_true", help="start afresh in a RUN folder that holds a run (default: off)")
     p.add_argument("--grayscale", action="store_true", help="one colour channel (smoke footage; default: off)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--resolution", type=int, default=None, metavar="W",
+                      help="train on the images W pixels wide (height in proportion), area-averaged when each frame is "
+                           "first decoded, intrinsics scaled (default: the footage's own size)")
+    size.add_argument("--downscale", type=float, default=None, metavar="K",
+                      help="train on the images K times smaller in each side (default: 1)")
     p.add_argument("--background-removal", choices=["difference", "xor"], default=None,
                    help="grayscale footage: remove the background against each view's first frame (default: none)")
     p.add_argument("--fps", type=float, default=None,
@@ -105,7 +111,7 @@ def parse_floor(text: str) -> float:
 def run(args) -> int:
     from tqdm import tqdm
 
-    from gf_core.data import load_dataset
+    from gf_core.data import has_split, load_dataset
     from gf_core.errors import InputError
     from gf_core.recon.config import make_config
     from gf_core.recon.trainer import CHECKPOINT, reconstruct
@@ -162,13 +168,13 @@ def run(args) -> int:
     except OSError as e:
         raise InputError(out, f"cannot write the run folder ({e.strerror})") from None
     kw = dict(grayscale=args.grayscale, background_removal=args.background_removal, fps=args.fps,
-              duration=args.duration)
+              duration=args.duration, resolution=args.resolution, downscale=args.downscale)
     from .options import parse_frames
 
     frames = parse_frames(args.frames) if args.frames is not None else None
     train = load_dataset(args.dataset, **kw)
     test = None
-    if (args.dataset / "transforms_test.json").exists() or any(args.dataset.glob("view_*/transforms_test.json")):
+    if has_split(args.dataset, "test"):
         test = load_dataset(args.dataset, split="test", **kw)
     if frames is not None:  # the held-out views are scored at the training times
         train = train.select_times(frames)

@@ -35,7 +35,7 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
     time-continuous reconstruction of the same images is measured against. ``time_budget`` (s,
     > 0): each run stops at it instead of at its iterations; per frame, the frames share it
     equally (the same total time as one reconstruction of the clip)."""
-    from ..data import load_dataset
+    from ..data import has_split, load_dataset
     from ..eval.evaluate import evaluate, read_metrics
     from ..recon.config import make_config
     from ..recon.trainer import reconstruct
@@ -45,7 +45,7 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
 
     train = load_dataset(dataset)
     test = None
-    if (Path(dataset) / "transforms_test.json").exists() or any(Path(dataset).glob("view_*/transforms_test.json")):
+    if has_split(dataset, "test"):
         test = load_dataset(dataset, split="test")
     if frames is not None:
         train = train.select_times(frames)

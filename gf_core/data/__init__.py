@@ -6,8 +6,12 @@ is a module of this package and one entry there):
 - ``video``: ``path/cameras.json`` + one video per camera
 - ``colmap``: a COLMAP sparse model (``path/sparse/0/cameras.bin`` + ``images.bin``, or .txt) + one
   video per registered image, named by its stem
+- ``pinf``: ``path/info.json`` with ``train_videos`` / ``test_videos`` + one video per camera (the
+  PINF / HyFluid layout of ScalarFlow captures)
 ``grayscale=True`` keeps one channel (ScalarFlow-like smoke footage); ``background_removal``
-("difference" or "xor") removes the background against each view's first frame.
+("difference" or "xor") removes the background against each view's first frame. ``resolution``
+(a width in pixels) or ``downscale`` (a factor) load the footage smaller, area-averaged
+(``FluidDataset.resized``).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from ..errors import InputError
 from .colmap import load_colmap, model_folder
 from .dataset import FluidDataset, FrameRecord, Sample
 from .nerf import load_nerf, load_neurofluid
+from .pinf import detect as _pinf_detect, load_pinf
 from .video import load_video
 from .videos import write_video
 
@@ -32,6 +37,8 @@ class Layout:
     looks_for: str                                       # what ``detect`` looks for (error messages)
     detect: Callable[[Path, str], bool]                  # (folder, split) -> is it this layout
     load: Callable[..., FluidDataset]                    # (folder, split, fps=, grayscale=, background_removal=)
+    splits: bool = True                                  # whether it can hold held-out cameras ("test"): then
+                                                         # ``detect`` answers per split
 
 
 def _neurofluid(path, split, *, fps, grayscale, background_removal):
@@ -49,11 +56,21 @@ LAYOUTS: dict[str, Layout] = {
                          _neurofluid),
     "video": Layout("cameras.json", lambda p, s: (p / "cameras.json").exists(),
                     lambda p, s, *, fps, grayscale, background_removal:
-                    load_video(p, grayscale=grayscale, background_removal=background_removal)),
+                    load_video(p, grayscale=grayscale, background_removal=background_removal), splits=False),
     "colmap": Layout("a COLMAP sparse/0/", lambda p, s: model_folder(p) is not None,
                      lambda p, s, *, fps, grayscale, background_removal:
-                     load_colmap(p, fps=fps, grayscale=grayscale, background_removal=background_removal)),
+                     load_colmap(p, fps=fps, grayscale=grayscale, background_removal=background_removal),
+                     splits=False),
+    "pinf": Layout("info.json with {split}_videos", _pinf_detect,
+                   lambda p, s, *, fps, grayscale, background_removal:
+                   load_pinf(p, s, grayscale=grayscale, background_removal=background_removal)),
 }
+
+
+def has_split(path, split: str = "test") -> bool:
+    """Whether the dataset folder holds this split (the held-out cameras for "test"), in any layout."""
+    path = Path(path)
+    return path.is_dir() and any(lay.splits and lay.detect(path, split) for lay in LAYOUTS.values())
 
 
 def detect_layout(path: Path, split: str = "train") -> str:
@@ -69,10 +86,12 @@ def detect_layout(path: Path, split: str = "train") -> str:
 
 def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale: bool = False,
                  background_removal: str | None = None, fps: float | None = None,
-                 duration: float | None = None) -> FluidDataset:
+                 duration: float | None = None, resolution: int | None = None,
+                 downscale: float | None = None) -> FluidDataset:
     """Load one split. Frame times end up in seconds: a dataset whose ``time_unit`` is
     "normalized" (D-NeRF's [0, 1]) is rescaled by ``duration`` (seconds of the clip) or ``fps``
-    (given here or in the dataset); ``meta["time_source"]`` says which was used."""
+    (given here or in the dataset); ``meta["time_source"]`` says which was used. ``resolution``
+    (width in pixels) or ``downscale`` (a factor >= 1) give smaller images (``FluidDataset.resized``)."""
     path = Path(path)
     if background_removal not in (None, "difference", "xor"):
         raise InputError("background_removal", f"unknown method {background_removal!r}; use 'difference' or 'xor'")
@@ -83,7 +102,18 @@ def load_dataset(path, *, layout: str = "auto", split: str = "train", grayscale:
         layout = detect_layout(path, split)
     if layout not in LAYOUTS:
         raise ValueError(f"unknown dataset layout {layout!r}; choose from auto, {', '.join(LAYOUTS)}")
+    if resolution is not None and downscale is not None:
+        raise InputError("--downscale", "give --resolution or --downscale, not both")
+    if downscale is not None and not (isinstance(downscale, (int, float)) and 1 <= downscale < float("inf")):
+        raise InputError("--downscale", f"must be a factor >= 1 (2: half the width and height), got {downscale!r}")
     ds = LAYOUTS[layout].load(path, split, fps=fps, grayscale=grayscale, background_removal=background_removal)
+    if resolution is not None:
+        ds = ds.resized(width=resolution)
+    elif downscale is not None and downscale != 1:
+        ds = ds.resized(factor=1.0 / downscale)
+    # how the images were read: a reconstruction keeps these, and evaluation reads the held-out views the same way
+    ds.meta["dataset_options"] = {k: v for k, v in (("grayscale", grayscale), ("background_removal", background_removal),
+                                                    ("resolution", resolution), ("downscale", downscale)) if v}
     return to_seconds(ds, fps=fps, duration=duration)
 
 
@@ -118,4 +148,5 @@ def load_grayscale(path, *, layout: str = "auto", split: str = "train",
 
 
 __all__ = ["FluidDataset", "FrameRecord", "Sample", "load_dataset", "load_grayscale", "load_nerf",
-           "load_neurofluid", "load_video", "load_colmap", "write_video", "detect_layout", "LAYOUTS"]
+           "load_neurofluid", "load_video", "load_colmap", "load_pinf", "write_video", "detect_layout", "has_split",
+           "LAYOUTS"]

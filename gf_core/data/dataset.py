@@ -30,6 +30,8 @@ class FrameRecord:
     frame_index: int | None = None  # None: ``file`` is an image; otherwise a video frame
     mask_file: Path | None = None
     distortion: "object" = None     # a ``distortion.Distortion`` of the recording lens, removed at load; None: pinhole
+    source: Camera | None = None    # the camera of the file's own pixels when they are resized at load
+                                    # (``FluidDataset.resized``); None: used at their own size
 
 
 @dataclass
@@ -136,6 +138,39 @@ class FluidDataset:
             raise InputError(self.root, f"none of its {len(self.times)} frame times is selected")
         return replace(self, frames=keep, meta=dict(self.meta))
 
+    def resized(self, *, width: int | None = None, factor: float | None = None) -> "FluidDataset":
+        """The same frames at another size: ``width`` pixels wide (the height in proportion) or
+        ``factor`` times each side (0.25 for ``--downscale 4``). Pixels are area-averaged when
+        each image is first decoded (OpenCV's INTER_AREA) and the intrinsics scale with them, so a
+        world point projects onto the same image content. Only smaller sizes: upscaling adds no
+        information and is refused."""
+        from dataclasses import replace
+
+        if (width is None) == (factor is None):
+            raise ValueError("give width or factor")
+        frames = []
+        cams: dict[int, Camera] = {}
+        for f in self.frames:
+            src = f.source or f.camera
+            if width is not None:
+                if not isinstance(width, int) or width < 1:
+                    raise InputError("--resolution", f"must be a positive number of pixels, got {width!r}")
+                k = width / src.width
+            else:
+                if not (isinstance(factor, (int, float)) and 0 < factor <= 1):
+                    raise InputError("--downscale", f"must be a factor >= 1, got {1 / factor if factor else factor!r}")
+                k = factor
+            if k > 1:
+                raise InputError(f.file, f"is {src.width} px wide; --resolution {width} would upscale it "
+                                         "(only smaller sizes are allowed)")
+            cam = cams.get(id(src))
+            if cam is None:
+                cam = cams[id(src)] = src.scaled(k)
+            frames.append(replace(f, camera=cam, source=None if cam == src else src))
+        ds = replace(self, frames=frames, meta=dict(self.meta))
+        ds.meta["resolution"] = sorted({(f.camera.width, f.camera.height) for f in frames})
+        return ds
+
     def ground_truth(self):
         """The ground-truth particles (``SimData``) if the dataset carries them, else None."""
         if self.gt_file is None:
@@ -160,13 +195,23 @@ class FluidDataset:
             self._cache.move_to_end(key)
             return hit
         img = read_image(rec.file) if rec.frame_index is None else self._video(rec.file).read(rec.frame_index)
-        cam = rec.camera
+        cam = rec.source or rec.camera
         if img.shape[0] != cam.height or img.shape[1] != cam.width:
             raise InputError(rec.file, f"image is {img.shape[1]}x{img.shape[0]} but its camera "
                                        f"says {cam.width}x{cam.height}")
-        img = self._undistort(rec, img)
+        img = self._to_size(rec, self._undistort(rec, img))
         self._remember(key, img)
         return img
+
+    @staticmethod
+    def _to_size(rec: FrameRecord, img: np.ndarray) -> np.ndarray:
+        """The decoded pixels area-averaged to the record's camera (``resized``), in their dtype."""
+        if rec.source is None:
+            return img
+        import cv2
+
+        out = cv2.resize(img, (rec.camera.width, rec.camera.height), interpolation=cv2.INTER_AREA)
+        return out.reshape(rec.camera.height, rec.camera.width, *img.shape[2:])
 
     def _undistort(self, rec: FrameRecord, img: np.ndarray) -> np.ndarray:
         """The pinhole image of a recorded one (``gf_core.data.distortion``); one remap table per
@@ -175,7 +220,7 @@ class FluidDataset:
             return img
         from .distortion import undistort, undistort_maps
 
-        cam = rec.camera
+        cam = rec.source or rec.camera
         key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, rec.distortion)
         maps = self.__dict__.setdefault("_undistort_maps", {})
         if key not in maps:
@@ -236,10 +281,11 @@ class FluidDataset:
         if rec.mask_file is None:
             return None
         m = read_image(rec.mask_file)
-        if m.shape[:2] != (rec.camera.height, rec.camera.width):
+        cam = rec.source or rec.camera
+        if m.shape[:2] != (cam.height, cam.width):
             raise InputError(rec.mask_file, f"mask is {m.shape[1]}x{m.shape[0]} but its camera says "
-                                            f"{rec.camera.width}x{rec.camera.height}")
-        m = self._undistort(rec, m)
+                                            f"{cam.width}x{cam.height}")
+        m = self._to_size(rec, self._undistort(rec, m))
         return to_float(m[:, :, -1] if m.shape[2] in (2, 4) else m[:, :, 0])
 
     def __getitem__(self, i: int) -> Sample:

@@ -568,6 +568,9 @@ RECON_CONFIG_SCHEMA = {
                       "a list of increasing finite numbers (seconds)"),
     "time_policy": (lambda v: v in ("clamp", "error"), "'clamp' or 'error'"),
     "dataset": (lambda v: isinstance(v, str), "a path (a string)"),
+    "dataset_options": (lambda v: isinstance(v, dict) and set(v) <= {"grayscale", "background_removal", "resolution",
+                                                                       "downscale"},
+                        "an object with grayscale, background_removal, resolution, downscale"),
     "bounds": (lambda v: isinstance(v, dict) and _numbers(v.get("lo"), 3) and _numbers(v.get("hi"), 3)
                and all(h > lo for lo, h in zip(v["lo"], v["hi"]))
                and all(_finite_number(v.get(k, 0.0)) for k in ("log_scale_min", "log_scale_max", "inset")),

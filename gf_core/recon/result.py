@@ -28,7 +28,8 @@ def result_config(tr) -> dict:
     return {"config": tr.cfg.to_dict(), "spacing": tr.ctx.spacing, "h": tr.ctx.h,
             "fluid_volume": fluid_volume(tr.model, [None] if tr.static else times, tr.ctx.h),
             "hull_volume": tr.volume, "scene_box_source": tr.box_source, "init": tr.init_source,
-            "dataset_fingerprint": tr.fingerprint, "dataset": str(tr.dataset.root), "canonical_time_s": tr.t_canon,
+            "dataset_fingerprint": tr.fingerprint, "dataset": str(tr.dataset.root),
+            "dataset_options": dict(meta.get("dataset_options", {})), "canonical_time_s": tr.t_canon,
             "time_source": meta.get("time_source", "seconds"), "channels": tr.views.channels,
             # the training frames' times: exports and the Blender extension sample these by default
             "frame_times_s": times, "fps": float(meta["fps"]) if meta.get("fps") else None}

@@ -248,6 +248,15 @@ def cases(base: dict) -> list[Case]:
             return ["inspect", str(root), "--layout", "video"]
         out.append(Case(f"cameras:{name}", make, must_refuse="=" not in name, tags=["video"]))
 
+    # PINF / HyFluid layout: info.json (every key), through inspect
+    for name, text in json_variants(_pinf_info(base)):
+        def make(tmp, text=text):
+            root = _video_dataset(base, tmp)
+            (root / "cameras.json").unlink()
+            (root / "info.json").write_bytes(text if isinstance(text, bytes) else text.encode())
+            return ["inspect", str(root), "--layout", "pinf"]
+        out.append(Case(f"info:{name}", make, must_refuse="=" not in name, tags=["pinf"]))
+
     # COLMAP rig: the sparse model's binary fields and text tokens, through inspect
     for name, change in colmap_variants():
         def make(tmp, change=change, binary=name.startswith("bin")):
@@ -492,6 +501,22 @@ def _video_cameras(base) -> dict:
     return {"fps": doc["fps"], "cameras": [
         {"video": f"view{v}.mkv", "transform_matrix": fr["transform_matrix"], "fl_x": fr["fl_x"], "fl_y": fr["fl_y"],
          "cx": fr["cx"], "cy": fr["cy"]} for v, fr in sorted(views.items())]}
+
+
+def _pinf_info(base) -> dict:
+    """The video layout's cameras as a PINF / HyFluid info.json (frame_num and camera_hw from the videos)."""
+    import math
+
+    cams = _video_cameras(base)
+    doc = json.loads((base["ds"] / "transforms_train.json").read_text())
+    w, h = doc["frames"][0].get("w", 16), doc["frames"][0].get("h", 16)
+    n = len({fr["time"] for fr in doc["frames"]})
+    videos = [{"file_name": c["video"], "frame_rate": cams["fps"], "frame_num": n, "camera_hw": [h, w],
+               "camera_angle_x": 2 * math.atan(0.5 * w / c["fl_x"]), "transform_matrix": c["transform_matrix"]}
+              for c in cams["cameras"]]
+    return {"train_videos": videos[:-1], "test_videos": videos[-1:], "frame_bkg_color": [0.0, 0.0, 0.0],
+            "voxel_matrix": [[1, 0, 0, -0.5], [0, 1, 0, -0.5], [0, 0, 1, 0], [0, 0, 0, 1]], "voxel_scale": [1, 1, 1],
+            "rot": "Z"}
 
 
 def _video_dataset(base, tmp: Path) -> Path:

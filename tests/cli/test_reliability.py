@@ -20,7 +20,7 @@ from gf_core.recon.config import make_config
 
 from reliability_cases import cases, make_base
 
-GROUPS = ("dataset", "video", "colmap", "sim", "recon", "checkpoint", "config", "option")
+GROUPS = ("dataset", "video", "pinf", "colmap", "sim", "recon", "checkpoint", "config", "option")
 # configs that the reader accepts train for two iterations each; every this-many-th of them runs
 CONFIG_RUN_EVERY = 8
 
