@@ -115,6 +115,12 @@ def register(sub):
                    help="each run stops after this many seconds instead of at its iterations; with --per-frame the "
                         "frames share it equally (default: none)")
     c.add_argument("--seed", type=int, default=None, help="reconstruction seed (default: the preset's)")
+    c.add_argument("--grayscale", action="store_true", help="one colour channel, as reconstruct (default: off)")
+    c.add_argument("--background-removal", choices=["difference", "xor"], default=None,
+                   help="grayscale footage: as reconstruct (default: none)")
+    size = c.add_mutually_exclusive_group()
+    size.add_argument("--resolution", type=int, default=None, metavar="W", help="images W pixels wide, as reconstruct")
+    size.add_argument("--downscale", type=float, default=None, metavar="K", help="images K times smaller, as reconstruct")
     c.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     c.add_argument("--out", type=Path, default=Path("bench_reconstruct"), help="output folder (runs, JSON, PNG)")
     c.set_defaults(func=run_reconstruct)
@@ -282,7 +288,9 @@ def run_reconstruct(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     recs = bench_reconstruct(args.dataset, args.out, iterations=its, particles=ns, preset=args.preset,
                              config_file=args.config, device=args.device, frames=frames, per_frame=args.per_frame,
-                             time_budget=args.time_budget, seed=args.seed)
+                             time_budget=args.time_budget, seed=args.seed,
+                             load_options=dict(grayscale=args.grayscale, background_removal=args.background_removal,
+                                               resolution=args.resolution, downscale=args.downscale))
     cols = [("time", "frame s", ".4f")] if args.per_frame else []
     cols += [("iterations_budget", "it budget", "d"), ("particle_budget", "N budget", "d"), ("iterations", "it", "d"),
             ("particles", "N", "d"), ("wall_s", "wall s", ".1f"), ("train_psnr", "train PSNR", ".2f")]

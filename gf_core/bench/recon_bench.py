@@ -29,12 +29,14 @@ def pareto(points: list[tuple[float, float]], higher_is_better: bool) -> list[in
 
 def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], particles: list[int], preset: str = "water",
                       config_file=None, device: str = "cpu", frames: slice | None = None, per_frame: bool = False,
-                      time_budget: float = 0.0, seed: int | None = None, log=print) -> list[dict]:
+                      time_budget: float = 0.0, seed: int | None = None, load_options: dict | None = None,
+                      log=print) -> list[dict]:
     """One record per run. With ``per_frame``, every selected frame is fitted on its own (a static
     scene: no decoder, no time model) for every budget pair: the per-frame reference that a
     time-continuous reconstruction of the same images is measured against. ``time_budget`` (s,
     > 0): each run stops at it instead of at its iterations; per frame, the frames share it
-    equally (the same total time as one reconstruction of the clip)."""
+    equally (the same total time as one reconstruction of the clip). ``load_options``: how the
+    images are read (``load_dataset``'s grayscale, background_removal, resolution, downscale)."""
     from ..data import has_split, load_dataset
     from ..eval.evaluate import evaluate, read_metrics
     from ..recon.config import make_config
@@ -43,10 +45,10 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
     def quiet(*a, **k):
         pass
 
-    train = load_dataset(dataset)
+    train = load_dataset(dataset, **(load_options or {}))
     test = None
     if has_split(dataset, "test"):
-        test = load_dataset(dataset, split="test")
+        test = load_dataset(dataset, split="test", **(load_options or {}))
     if frames is not None:
         train = train.select_times(frames)
         test = test.with_times(train.times) if test is not None else None

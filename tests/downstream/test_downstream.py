@@ -201,6 +201,16 @@ def test_bench_reconstruct_per_frame_fits_each_frame_alone(blob, tmp_path):
     assert (out / "per_frame.png").stat().st_size > 10000
 
 
+def test_bench_reconstruct_reads_the_images_as_reconstruct_does(blob, tmp_path):
+    """--grayscale and --resolution reach the runs: one channel, the smaller cameras."""
+    out = tmp_path / "gray"
+    assert main(["bench", "reconstruct", str(blob), "--per-frame", "--frames", "0:1", "--iterations", "10",
+                 "--particles", "100", "--grayscale", "--resolution", "16", "--out", str(out)]) == 0
+    run = next(out.glob("run_it10_n100_t*"))
+    rr = read_recon(run / "recon.h5")
+    assert rr.channels == 1 and rr.config["dataset_options"] == {"grayscale": True, "resolution": 16}
+
+
 def test_pareto_front():
     from gf_core.bench.recon_bench import pareto
 
