@@ -1,7 +1,8 @@
 """``gf-cli render-dataset sim.h5 --out DATASET``: render a multiview dataset with Blender.
 
 Runs render_data/render_dataset.py with a ``blender`` binary (``--blender PATH`` or on PATH),
-otherwise with the ``bpy`` module from PyPI, in a separate process.
+otherwise with the ``bpy`` module from PyPI, in a separate process. A smoke density grid
+(``gf-cli simulate smoke_plume``) is ray-marched in-process instead (``gf_core.data.writers.write_smoke_dataset``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ def register(sub):
                                    "(CPU), plus transforms_{train,test}.json, a copy of the particles and a "
                                    "manifest. Uses a blender binary when given or on PATH, otherwise the bpy "
                                    "module. Resumable: re-running skips frames already rendered.")
-    p.add_argument("sim", type=Path, help="the simulation (sim.h5)")
+    p.add_argument("sim", type=Path, help="the simulation (sim.h5, or a smoke plume's grid.h5: ray-marched, grayscale)")
     p.add_argument("--out", type=Path, required=True, help="dataset folder")
     p.add_argument("--views", type=int, default=5, help="training cameras on a frontal arc (default 5)")
     p.add_argument("--test-views", type=int, default=0, help="held-out cameras between them (default 0)")
@@ -160,9 +161,21 @@ def check_out(args) -> None:
 
 
 def run(args) -> int:
-    from gf_core.formats.hdf5 import output_lock, read_sim
+    from gf_core.formats.hdf5 import GRID_FORMAT, file_format, output_lock, read_sim
 
     frames = check_options(args)
+    if file_format(args.sim) == GRID_FORMAT:  # a smoke density grid (gf-cli simulate smoke_plume)
+        from gf_core.data.writers import write_smoke_dataset
+
+        from .options import check_out_dir
+
+        check_out_dir(args.out)
+        with output_lock(args.out, "dataset"):
+            write_smoke_dataset(args.sim, args.out, views=args.views, test_views=args.test_views,
+                                 resolution=args.resolution, fov_deg=args.fov, arc_deg=args.arc,
+                                 elevation_deg=args.elevation, test_elevation_deg=args.test_elevation, frames=frames)
+        print(f"dataset written to {args.out} (ray-marched density, grayscale)", flush=True)
+        return 0
     sim = read_sim(args.sim)
     if not range(sim.num_frames)[frames]:
         raise InputError("--frames", f"{args.frames} selects none of the simulation's {sim.num_frames} frames")

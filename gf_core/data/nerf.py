@@ -158,6 +158,12 @@ def dataset_meta(meta: dict, json_path: Path) -> dict:
         if z is None:
             raise InputError(json_path, f"'floor' must be a finite number (the floor's height, metres), got {meta['floor']!r}")
         out["floor"] = z
+    if "gt_density" in meta:  # a smoke dataset's true density per frame (a grid.h5 beside it)
+        name = path_value(meta, "gt_density", json_path, "top level")
+        p = json_path.parent / name
+        if not p.exists():
+            raise InputError(json_path, f"'gt_density' names {p}, which does not exist")
+        out["gt_density"] = str(p)
     unit = meta.get("time_unit", "seconds")
     if unit == "normalised":
         unit = "normalized"

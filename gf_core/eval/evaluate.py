@@ -52,6 +52,37 @@ def _summary(rows: list[dict]) -> dict:
             "per_frame": per_frame, "per_image": rows}
 
 
+def _density_vs_grid(path: Path, times, states, log) -> dict:
+    """The reconstruction's density (its Gaussians summed at the grid's cell centres) against the
+    true density grid (a smoke dataset's ``gt_density``), at the frames both have."""
+    from ..formats.hdf5 import read_grid
+    from .metrics import density_agreement, gaussian_density
+
+    g = read_grid(path)
+    lo, cell = np.asarray(g.domain_min), g.cell
+    axes = [lo[a] + (np.arange(g.density.shape[1 + a]) + 0.5) * cell[a] for a in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    recon, truth, used = [], [], []
+    for t, st in zip(times, states):
+        f = int(np.argmin(np.abs(g.times - t)))
+        if abs(g.times[f] - t) > 0.5 / g.fps + 1e-9:
+            continue
+        recon.append(gaussian_density(*(st[k].cpu().numpy() for k in ("means", "scales", "quats")),
+                                      st["opacities"].reshape(-1).cpu().numpy(), centres))
+        truth.append(g.density[f].reshape(-1))
+        used.append(float(t))
+    if not used:
+        raise InputError(path, "none of its frames is at a frame time of the reconstruction")
+    res = density_agreement(recon, truth)
+    for row, t in zip(res["per_frame"], used):
+        row["time"] = t
+    res.update(gt=str(path), grid=list(g.density.shape[1:]))
+    log(f"density vs the true grid ({'x'.join(map(str, g.density.shape[1:]))} cells, {len(used)} frames): "
+        f"correlation {res['corr_mean']:.3f} (worst frame {res['corr_min_frame']:.3f}), relative error "
+        f"{res['error_mean']:.3f}")
+    return res
+
+
 def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device="cpu", out: Path | None = None,
              rest_density: float | None = None, upsample: int | None = None, log=print) -> dict:
     run = Path(run)
@@ -143,6 +174,8 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
                 f"{pv['recon_to_gt_max_frame']:.3f}); {100 * pv['gt_within_1_mean']:.1f}% of true particles covered; "
                 f"at most {100 * pv['outside_container_max_frame']:.1f}% of the particles outside the true container; "
                 f"earth mover's distance {pv['emd_mean']:.3f} spacings (subsampling floor {pv['emd_floor']:.3f})")
+    if dataset is not None and dataset.meta.get("gt_density"):
+        result["density_vs_gt"] = _density_vs_grid(Path(dataset.meta["gt_density"]), times, states, log)
     result["training"] = r.metrics
     metrics_file = (run if run.is_dir() else run.parent) / "metrics.jsonl"
     curve = read_metrics(metrics_file) if metrics_file.exists() else []

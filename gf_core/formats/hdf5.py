@@ -27,6 +27,7 @@ SIM_FORMAT, SIM_VERSION = "gaussfluids.sim", 1
 # still read what they can render correctly
 RECON_FORMAT, RECON_VERSION = "gaussfluids.recon", 4
 RECON_VERSIONS_READ = (1, 2, 3, 4)
+GRID_FORMAT, GRID_VERSION = "gaussfluids.grid", 1
 
 
 # ---- helpers -------------------------------------------------------------------------------------
@@ -716,3 +717,80 @@ def read_recon(path) -> ReconData:
                       config=_json_attr(f, "config", path), metrics=_json_attr(f, "metrics", path))
     _check_recon(r, str(path))
     return r
+
+
+# ---- grid.h5: a density field per frame (smoke ground truth) -------------------------------------------
+@dataclass
+class GridData:
+    """A scalar density field per frame on a regular grid: ``density`` (F, nx, ny, nz) float32 >= 0,
+    cell (i, j, k) centred at domain_min + (i + 0.5, j + 0.5, k + 0.5) * cell size, where the cell
+    size is (domain_max - domain_min) / (nx, ny, nz); ``times`` (F,) seconds."""
+
+    density: np.ndarray
+    times: np.ndarray
+    domain_min: tuple
+    domain_max: tuple
+    fps: float
+    scene: str = ""
+    config: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.density = np.asarray(self.density, np.float32)
+        self.times = np.asarray(self.times, np.float64)
+        if self.density.ndim != 4:
+            raise InputError("grid data", f"density must be (frames, nx, ny, nz), got {self.density.shape}")
+        if self.times.shape != (self.density.shape[0],):
+            raise InputError("grid data", f"times must be ({self.density.shape[0]},), got {self.times.shape}")
+
+    @property
+    def cell(self) -> np.ndarray:
+        return (np.asarray(self.domain_max, np.float64) - np.asarray(self.domain_min, np.float64)) \
+            / np.asarray(self.density.shape[1:], np.float64)
+
+
+def _check_grid(g: GridData, where) -> None:
+    lo, hi = np.asarray(g.domain_min, np.float64), np.asarray(g.domain_max, np.float64)
+    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo)) or not np.all(np.isfinite(hi)) \
+            or np.any(hi <= lo):
+        raise FormatError(where, f"domain_min {short_repr(lo.tolist())} / domain_max {short_repr(hi.tolist())} "
+                                 "must be 3 finite numbers each with max > min")
+    if not (np.isfinite(g.fps) and g.fps > 0):
+        raise FormatError(where, f"fps must be a positive number, got {g.fps}")
+    if not np.all(np.isfinite(g.density)) or np.any(g.density < 0):
+        raise FormatError(where, "density must be finite and >= 0 everywhere")
+    if g.density.shape[0] > 1 and not np.all(np.diff(g.times) > 0):
+        raise FormatError(where, "times must increase")
+
+
+def write_grid(path, g: GridData) -> Path:
+    """Write ``g`` to ``path`` atomically (gzip-compressed density). Refuses what ``read_grid`` refuses."""
+    path = Path(path)
+    _check_grid(g, str(path))
+    h5py = _h5()
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format"] = GRID_FORMAT
+            f.attrs["version"] = GRID_VERSION
+            f.attrs["fps"] = float(g.fps)
+            f.attrs["scene"] = g.scene
+            f.attrs["domain_min"] = np.asarray(g.domain_min, np.float64)
+            f.attrs["domain_max"] = np.asarray(g.domain_max, np.float64)
+            f.attrs["config"] = json.dumps(g.config)
+            f.create_dataset("density", data=g.density, compression="gzip", compression_opts=1,
+                             chunks=(1,) + g.density.shape[1:])
+            f.create_dataset("times", data=g.times)
+    return path
+
+
+def read_grid(path) -> GridData:
+    with _open_checked(path, GRID_FORMAT, GRID_VERSION) as f:
+        density = _read(f, "density", path, ndim=4)
+        times = _read(f, "times", path, ndim=1, dtype=np.float64)
+        if times.shape != density.shape[:1]:
+            raise FormatError(path, f"times has {times.shape[0]} entries for {density.shape[0]} density frames")
+        g = GridData(density=density, times=times, domain_min=tuple(_read_vec_attr(f, "domain_min", path)),
+                     domain_max=tuple(_read_vec_attr(f, "domain_max", path)), fps=_attr(f, "fps", path),
+                     scene=_attr(f, "scene", path, cast=str) if "scene" in f.attrs else "",
+                     config=_json_attr(f, "config", path))
+    _check_grid(g, str(path))
+    return g
