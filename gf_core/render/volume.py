@@ -27,7 +27,7 @@ def light_transmittance(density: torch.Tensor, cell_z: float, extinction: float)
     return torch.exp(-extinction * cell_z * above)
 
 
-def render_density(density: np.ndarray, lo, hi, cam: Camera, *, extinction: float = 60.0, ambient: float = 0.3,
+def render_density(density: np.ndarray, lo, hi, cam: Camera, *, extinction: float = 40.0, ambient: float = 0.3,
                    light: float = 0.9, step_cells: float = 0.5) -> np.ndarray:
     """The (H, W) float32 image in [0, 1] of one frame's density (nx, ny, nz) in the box [lo, hi]."""
     d = torch.as_tensor(np.asarray(density, np.float32))

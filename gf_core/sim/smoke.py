@@ -33,12 +33,13 @@ class PlumeConfig:
     fps: float = 30.0
     source_center: tuple = (0.0, 0.0, 0.06)
     source_radius: float = 0.035           # metres
-    source_speed: float = 0.4              # m/s upwards in the source
-    source_noise: float = 0.5              # relative amplitude of the source density's noise
+    source_speed: float = 0.5              # m/s upwards in the source
+    source_noise: float = 0.8              # relative amplitude of the source density's noise
+    source_wobble: float = 0.6             # m/s: a random horizontal velocity given to the whole source each step
     buoyancy: float = 3.0                  # m/s^2 per unit of heat
     weight: float = 0.2                    # m/s^2 per unit of density (downwards)
-    cooling: float = 1.0                   # 1/s: heat decays as exp(-cooling t)
-    vorticity: float = 0.25                # confinement strength (dimensionless, x cell size)
+    cooling: float = 1.5                   # 1/s: heat decays as exp(-cooling t)
+    vorticity: float = 5.0                 # confinement strength (dimensionless, x cell size)
     cfl: float = 1.5                       # at most this many cells per sub-step
     cg_iterations: int = 150               # pressure solve (conjugate-gradient iterations at most)
     seed: int = 0
@@ -171,6 +172,9 @@ def _step(vel, dens, heat, source, idx, h, dt, cfg: PlumeConfig, gen):
     heat = torch.maximum(heat, source)
     vel = vel.clone()
     vel[2] = torch.where(source > 0, torch.maximum(vel[2], source * cfg.source_speed), vel[2])
+    if cfg.source_wobble > 0:  # an unsteady inflow: the source pushes sideways, a new direction each step
+        side = cfg.source_wobble * (2 * torch.rand(2, generator=gen) - 1)
+        vel[:2] = vel[:2] + source * side.view(2, 1, 1, 1)
     # semi-Lagrangian advection: values carried from where the flow comes from
     back = idx - dt * vel / h
     adv = _sample(torch.cat([vel, dens[None], heat[None]]), back)
