@@ -53,18 +53,20 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
         train = train.select_times(frames)
         test = test.with_times(train.times) if test is not None else None
     records = []
-    clips = [(None, train, test)]
-    if per_frame:
-        clips = [(float(t), train.with_times([t]), None if test is None else test.with_times([t]))
-                 for t in np.unique(train.times)]
+    frame_times = [float(t) for t in np.unique(train.times)] if per_frame else [None]
+
+    def clips():  # one frame's images at a time: a clip's pixels are dropped once it is fitted
+        for t in frame_times:
+            yield (t, train, test) if t is None else \
+                (t, train.with_times([t]), None if test is None else test.with_times([t]))
     for n in particles:
         for it in iterations:
-            for t, tr_ds, te_ds in clips:
+            for t, tr_ds, te_ds in clips():
                 base = make_config(preset, config_file)
                 over = {"phases": {"iterations": it, "limit_factor": 1.0},  # the budget swept, exactly
                         "model": {"max_particles": n, "init_particles": min(n, base.model.init_particles)}}
                 if time_budget > 0:
-                    over["train"] = {"time_budget_s": float(time_budget) / len(clips)}
+                    over["train"] = {"time_budget_s": float(time_budget) / len(frame_times)}
                 if seed is not None:
                     over.setdefault("train", {})["seed"] = int(seed)
                 cfg = make_config(preset, config_file, over)

@@ -18,6 +18,32 @@ from ..camera import Camera
 from ..errors import InputError
 from .images import read_image, to_float
 
+# Open video decoders, shared by every dataset of the process (the datasets that ``with_times`` or
+# ``resized`` derive read the same files): each holds the decoder's frame buffers, so only the few
+# most recently used stay open, however many datasets there are.
+_READERS: OrderedDict = OrderedDict()
+MAX_OPEN_VIDEOS = 16
+
+
+def video_reader(path: Path):
+    """The open ``VideoReader`` of ``path`` (opened on first use; the least recently used one is
+    closed when more than ``MAX_OPEN_VIDEOS`` are open)."""
+    from .videos import VideoReader
+
+    path = Path(path)
+    try:
+        st = path.stat()
+    except OSError:
+        raise InputError(path, "video file does not exist (or cannot be read)") from None
+    key = (path, st.st_ino, st.st_mtime_ns, st.st_size)  # a file replaced on disk is opened anew
+    r = _READERS.get(key)
+    if r is None:
+        r = _READERS[key] = VideoReader(path)
+        while len(_READERS) > MAX_OPEN_VIDEOS:
+            _READERS.popitem(last=False)[1].close()
+    _READERS.move_to_end(key)
+    return r
+
 
 @dataclass(frozen=True)
 class FrameRecord:
@@ -194,7 +220,11 @@ class FluidDataset:
         if hit is not None:
             self._cache.move_to_end(key)
             return hit
-        img = read_image(rec.file) if rec.frame_index is None else self._video(rec.file).read(rec.frame_index)
+        if rec.frame_index is None:
+            img = read_image(rec.file)
+        else:
+            img = video_reader(rec.file).read(rec.frame_index)
+            self.__dict__["_decoded"] = self.__dict__.get("_decoded", 0) + 1
         cam = rec.source or rec.camera
         if img.shape[0] != cam.height or img.shape[1] != cam.width:
             raise InputError(rec.file, f"image is {img.shape[1]}x{img.shape[0]} but its camera "
@@ -227,23 +257,10 @@ class FluidDataset:
             maps[key] = undistort_maps(cam, rec.distortion)
         return undistort(img, maps[key])
 
-    def _video(self, path: Path):
-        """An open reader per video file (a few at a time: each holds a decoder)."""
-        from .videos import VideoReader
-
-        readers = self.__dict__.setdefault("_readers", OrderedDict())
-        r = readers.get(path)
-        if r is None:
-            r = readers[path] = VideoReader(path)
-            while len(readers) > 16:
-                readers.popitem(last=False)[1].close()
-        readers.move_to_end(path)
-        return r
-
     @property
     def frames_decoded(self) -> int:
-        """Video frames decoded so far (images count one each)."""
-        return sum(r.frames_decoded for r in self.__dict__.get("_readers", {}).values())
+        """Video frames this dataset has decoded so far (images are not counted)."""
+        return self.__dict__.get("_decoded", 0)
 
     @staticmethod
     def _gray(raw: np.ndarray) -> np.ndarray:

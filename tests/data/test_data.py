@@ -168,6 +168,29 @@ def test_video_frames_are_read_by_seeking_not_whole_videos(tmp_path, rng):
     assert ds.frames_decoded == len(order)
 
 
+def test_derived_datasets_share_the_open_videos(tmp_path, rng):
+    """A dataset per frame (what a per-frame fit makes) opens no decoder of its own: however many
+    datasets read the videos, at most MAX_OPEN_VIDEOS stay open, and a video replaced on disk is
+    read anew."""
+    from gf_core.data import dataset as dsmod
+
+    cams = rig()
+    imgs = rng.integers(0, 256, size=(VIEWS, FRAMES, H, W, 3), dtype=np.uint8)
+    write_video_layout(tmp_path, cams, imgs)
+    ds = load_dataset(tmp_path)
+    dsmod._READERS.clear()
+    for _ in range(20):
+        for t in ds.times:
+            one = ds.with_times([t])
+            for i in range(len(one)):
+                one.load(i)
+    assert len(dsmod._READERS) == VIEWS <= dsmod.MAX_OPEN_VIDEOS
+    write_video(tmp_path / "cam0.mkv", imgs[0][::-1], FPS)  # the same name, other frames
+    fresh = load_dataset(tmp_path)
+    i = fresh.indices(view_id=0, time=0.0)[0]
+    assert np.array_equal((fresh.load(i)[0] * 255).round().astype(np.uint8), imgs[0][-1])
+
+
 def test_intrinsics_and_fps_are_checked_alike_in_every_layout(tmp_path, rng):
     cams, imgs = rig(), images(rng, channels=3)
     write_video_layout(tmp_path / "v", cams, imgs[:, :2], camera_angle_x=3.5)
