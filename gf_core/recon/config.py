@@ -26,12 +26,13 @@ PRESETS = ("water", "honey", "smoke")
 @dataclass
 class ModelConfig:
     sh_degree: int = 1
-    init: str = "carve"            # carve (alpha masks) | random (uniform in the scene box)
+    init: str = "carve"            # carve (alpha masks) | bright (the bright pixels as masks: smoke on black) | random
     init_particles: int = 8000
     max_particles: int = 16000
     init_opacity: float = 0.1
     init_scale: float = 0.5        # Gaussian std in particle spacings
     carve_threshold: float = 0.5   # alpha a carved point must see in every view that sees it
+    bright_threshold: float = 0.05  # init = "bright": a pixel this far from the background is smoke
     scene_box: list = field(default_factory=list)  # [[x0, y0, z0], [x1, y1, z1]]; empty: dataset/cameras
     floor: list = field(default_factory=list)      # [z]: the floor's height alone (metres); empty: unknown
     floor_estimate: str = "silhouettes"  # without a known floor: "silhouettes" (recon/initial.py) | "none"
@@ -135,8 +136,8 @@ class ReconConfig:
         m, lo, ph = self.model, self.loss, self.phases
         if m.sh_degree not in (0, 1, 2, 3):
             raise InputError(where, f"model.sh_degree must be 0-3, got {m.sh_degree}")
-        if m.init not in ("carve", "random"):
-            raise InputError(where, f"model.init must be 'carve' or 'random', got {m.init!r}")
+        if m.init not in ("carve", "bright", "random"):
+            raise InputError(where, f"model.init must be 'carve', 'bright' or 'random', got {m.init!r}")
         if m.floor_estimate not in ("silhouettes", "none"):
             raise InputError(where, f"model.floor_estimate must be 'silhouettes' or 'none', got {m.floor_estimate!r}")
         if m.init_particles < 1 or m.max_particles < 1:
@@ -216,7 +217,7 @@ _LR = (0.0, 10.0, False)  # a learning rate
 RANGES = {
     "model.sh_degree": (0, 3, False), "model.init_particles": (1, 10**8, False),
     "model.max_particles": (1, 10**8, False), "model.init_opacity": (0.0, 1.0, True),
-    "model.init_scale": (0.0, 100.0, True), "model.carve_threshold": (0.0, 1.0, False),
+    "model.init_scale": (0.0, 100.0, True), "model.carve_threshold": (0.0, 1.0, False), "model.bright_threshold": (0.0, 1.0, False),
     "model.wall_inset": (0.0, 2.0, False),
     "decoder.feature_dim": (1, 4096, False), "decoder.hidden_layers": (1, 64, False),
     "decoder.hidden_width": (1, 8192, False), "decoder.n_freqs": (0, 20, False),

@@ -209,6 +209,13 @@ def carve(lo, hi, views: list[tuple[Camera, torch.Tensor]], n: int, *, threshold
     return pts, volume
 
 
+def bright_mask(image: torch.Tensor, background, threshold: float) -> torch.Tensor:
+    """(H, W) 1 where an image (H, W, C) differs from the background colour by at least
+    ``threshold`` in some channel (smoke on a dark background: its silhouette), else 0."""
+    bg = torch.as_tensor(background, dtype=image.dtype, device=image.device).reshape(1, 1, -1)
+    return ((image - bg).abs().amax(-1) >= threshold).to(image.dtype)
+
+
 def spacing_for(volume: float, n: int) -> float:
     return (max(volume, 1e-30) / max(n, 1)) ** (1.0 / 3.0)
 
@@ -273,6 +280,10 @@ def start(cfg, views, dataset, *, t_canon: float, time_map, decoder_cfg, knots, 
         pts, volume = carve(lo, hi, [(views.cameras[i], views.alphas[i]) for i in canon], n0,
                             threshold=mc.carve_threshold, seed=cfg.train.seed)
         init_source = "carved"
+    elif mc.init == "bright":
+        masks = [(views.cameras[i], bright_mask(views.images[i], views.background, mc.bright_threshold)) for i in canon]
+        pts, volume = carve(lo, hi, masks, n0, threshold=0.5, seed=cfg.train.seed)
+        init_source = "carved from the bright pixels"
     else:
         if mc.init == "carve":
             log("no alpha in the canonical frame's images: particles start uniform in the scene box")
@@ -297,4 +308,4 @@ def start(cfg, views, dataset, *, t_canon: float, time_map, decoder_cfg, knots, 
     return Start(model, volume, spacing, cfg.density.h_factor * spacing, src, init_source)
 
 
-__all__ = ["Start", "start", "floor_known", "lowest_edge_points", "estimate_floor", "scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]
+__all__ = ["Start", "start", "bright_mask", "floor_known", "lowest_edge_points", "estimate_floor", "scene_box", "box_from_cameras", "carve", "spacing_for", "random_in_box", "mean_foreground_color"]
