@@ -180,7 +180,7 @@ def in_hull(P: np.ndarray, views: list[tuple[Camera, torch.Tensor]], threshold: 
 
 
 def carve(lo, hi, views: list[tuple[Camera, torch.Tensor]], n: int, *, threshold: float = 0.5,
-          seed: int = 0, max_candidates: int = 4_000_000) -> tuple[np.ndarray, float]:
+          seed: int = 0, max_candidates: int = 4_000_000, masks: str = "alpha masks") -> tuple[np.ndarray, float]:
     """``n`` points inside the visual hull of the masks ``views`` [(camera, alpha (H, W))], and
     the hull's volume estimate (m^3). Raises if every mask is empty."""
     rng = np.random.default_rng(seed)
@@ -196,9 +196,9 @@ def carve(lo, hi, views: list[tuple[Camera, torch.Tensor]], n: int, *, threshold
             break
     pts = np.concatenate(kept, 0)
     if pts.shape[0] == 0:
-        raise InputError("reconstruct", "the alpha masks of the canonical frame are empty in every view "
-                                        "(nothing to reconstruct); use model.init = 'random' for footage "
-                                        "without usable alpha")
+        raise InputError("reconstruct", f"the {masks} of the canonical frame are empty in every view "
+                                        "(nothing to reconstruct there): choose another canonical frame "
+                                        "(decoder.canonical_time, 0 = first, 1 = last) or model.init = 'random'")
     volume = box_vol * pts.shape[0] / tried
     if pts.shape[0] < n:  # a thin hull: repeat points with a small jitter
         extra = pts[rng.integers(0, pts.shape[0], n - pts.shape[0])]
@@ -282,7 +282,8 @@ def start(cfg, views, dataset, *, t_canon: float, time_map, decoder_cfg, knots, 
         init_source = "carved"
     elif mc.init == "bright":
         masks = [(views.cameras[i], bright_mask(views.images[i], views.background, mc.bright_threshold)) for i in canon]
-        pts, volume = carve(lo, hi, masks, n0, threshold=0.5, seed=cfg.train.seed)
+        pts, volume = carve(lo, hi, masks, n0, threshold=0.5, seed=cfg.train.seed,
+                            masks=f"bright pixels (model.bright_threshold = {mc.bright_threshold:g})")
         init_source = "carved from the bright pixels"
     else:
         if mc.init == "carve":
