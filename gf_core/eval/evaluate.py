@@ -77,9 +77,13 @@ def _density_vs_grid(path: Path, times, states, log) -> dict:
     for row, t in zip(res["per_frame"], used):
         row["time"] = t
     res.update(gt=str(path), grid=list(g.density.shape[1:]))
-    log(f"density vs the true grid ({'x'.join(map(str, g.density.shape[1:]))} cells, {len(used)} frames): "
-        f"correlation {res['corr_mean']:.3f} (worst frame {res['corr_min_frame']:.3f}), relative error "
-        f"{res['error_mean']:.3f}")
+    scored = sum(r["corr"] is not None for r in res["per_frame"])
+    if scored:
+        log(f"density vs the true grid ({'x'.join(map(str, g.density.shape[1:]))} cells, {scored} frames with "
+            f"smoke of {len(used)}): correlation {res['corr_mean']:.3f} (worst frame {res['corr_min_frame']:.3f}), "
+            f"relative error {res['error_mean']:.3f}")
+    else:
+        log(f"density vs the true grid: no smoke in its {len(used)} frames at the reconstruction's times")
     return res
 
 

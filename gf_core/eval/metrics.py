@@ -158,16 +158,23 @@ def density_agreement(recon: list[np.ndarray], truth: list[np.ndarray]) -> dict:
     """A reconstructed density field against the true one, frame by frame: the Pearson correlation
     over the grid's cells, and the relative L2 error after one least-squares scale for the whole
     clip (the reconstruction's density has no unit of its own; one scale keeps how the amount of
-    smoke changes over time in the comparison)."""
+    smoke changes over time in the comparison). Frames whose true field is empty are listed but not
+    scored."""
     a = np.concatenate([np.ravel(r) for r in recon])
     b = np.concatenate([np.ravel(t) for t in truth])
     scale = float(a @ b / max(a @ a, 1e-300))
     rows = []
     for r, t in zip(recon, truth):
         r, t = np.ravel(r), np.ravel(t)
+        if not np.any(t > 0):  # no smoke yet: nothing to correlate with (the frame is left out of the scores)
+            rows.append({"corr": None, "error": None, "empty_truth": True})
+            continue
         corr = float(np.corrcoef(r, t)[0, 1]) if r.std() > 0 and t.std() > 0 else 0.0
-        err = float(np.linalg.norm(scale * r - t) / max(np.linalg.norm(t), 1e-300))
+        err = float(np.linalg.norm(scale * r - t) / np.linalg.norm(t))
         rows.append({"corr": corr, "error": err})
-    return {"scale": scale, "per_frame": rows, "corr_mean": float(np.mean([x["corr"] for x in rows])),
-            "corr_min_frame": float(min(x["corr"] for x in rows)),
-            "error_mean": float(np.mean([x["error"] for x in rows]))}
+    scored = [x for x in rows if x["corr"] is not None]
+    if not scored:
+        return {"scale": scale, "per_frame": rows, "corr_mean": None, "corr_min_frame": None, "error_mean": None}
+    return {"scale": scale, "per_frame": rows, "corr_mean": float(np.mean([x["corr"] for x in scored])),
+            "corr_min_frame": float(min(x["corr"] for x in scored)),
+            "error_mean": float(np.mean([x["error"] for x in scored]))}

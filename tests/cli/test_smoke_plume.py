@@ -35,4 +35,5 @@ def test_plume_simulate_render_reconstruct_evaluate(tmp_path):
     dv = json.loads((run / "eval.json").read_text())["density_vs_gt"]
     assert [round(r["time"], 3) for r in dv["per_frame"]] == [0.2, 0.4, 0.6]
     assert all(math.isfinite(r["corr"]) and -1 <= r["corr"] <= 1 and r["error"] >= 0 for r in dv["per_frame"])
+    assert math.isfinite(dv["corr_mean"]) and math.isfinite(dv["error_mean"])
     assert dv["grid"] == list(g.density.shape[1:])

@@ -64,3 +64,5 @@ def test_density_agreement_scores_the_same_field_one_and_a_shuffled_one_near_zer
     assert abs(same["scale"] - 0.4) < 1e-12 and same["corr_min_frame"] > 0.999999 and same["error_mean"] < 1e-9
     shuffled = density_agreement([rng.permutation(t.ravel()) for t in truth], truth)
     assert abs(shuffled["corr_mean"]) < 0.15 and shuffled["error_mean"] > 0.3
+    with_empty = density_agreement([truth[0], np.ones((8, 8, 8))] , [truth[0], np.zeros((8, 8, 8))])
+    assert with_empty["per_frame"][1]["empty_truth"] and with_empty["corr_min_frame"] > 0.999999
