@@ -158,7 +158,7 @@ def load_pinf(root, split: str = "train", *, grayscale: bool = False,
     # views are numbered over both lists, so a held-out camera never shares a training camera's id
     first = 0 if split == "train" else len(meta.get("train_videos") or [])
     records = [r for k, e in enumerate(entries) for r in _records(root, e, k, key, json_path, turn, first + k)]
-    rates = {round(1.0 / (r.time if r.time > 0 else np.inf), 6) for r in records if r.frame_index == 1}
+    rates = {e["frame_rate"] for e in entries}  # each checked by _records
     if len(rates) > 1:
         raise InputError(json_path, f"{key}: the videos have different 'frame_rate' values ({sorted(rates)}); "
                                     "the cameras must be synchronised")

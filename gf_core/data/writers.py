@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
+from ..errors import InputError
 from ..formats.hdf5 import atomic_write_text
 from .images import write_png
 
@@ -61,7 +62,7 @@ def write_smoke_dataset(grid_path: Path, out: Path, *, views: int = 5, test_view
                              arc_deg=arc_deg, elevation_deg=elevation_deg, test_elevation_deg=test_elevation_deg)
     keep = list(range(g.density.shape[0]))[frames]
     if not keep:
-        raise ValueError(f"--frames selects none of the grid's {g.density.shape[0]} frames")
+        raise InputError("--frames", f"selects none of the grid's {g.density.shape[0]} frames ({grid_path})")
     entries = {"train": [], "test": []}
     for k, f in enumerate(keep):
         for split, cams, v0 in (("train", train, 0), ("test", test, len(train))):

@@ -16,6 +16,7 @@ from ..recon.terms.volume import volume_consistency
 from ..sph.density import particle_volume, sph_density_knn  # noqa: F401 - particle_volume: a measure of this module too
 from ..sph.kernels import poly6
 from ..sph.neighbors import knn
+from ..render.reference import quat_to_rotmat
 
 
 def image_metrics(pred: torch.Tensor, target: torch.Tensor) -> dict:
@@ -135,12 +136,7 @@ def gaussian_density(means, scales, quats, opacities, points, *, k: int = 32) ->
     if len(mu) == 0:
         return np.zeros(len(points))
     s = np.asarray(scales, np.float64)
-    q = np.asarray(quats, np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
+    R = quat_to_rotmat(torch.as_tensor(np.asarray(quats, np.float64))).numpy()
     k = min(k, len(mu))
     pts = np.asarray(points, np.float64)
     tree, o = cKDTree(mu), np.asarray(opacities, np.float64)

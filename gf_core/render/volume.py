@@ -44,8 +44,7 @@ def render_density(density: np.ndarray, lo, hi, cam: Camera, *, extinction: floa
     dirs = dirs_c @ c2w[:3, :3].T
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     o = c2w[:3, 3]
-    with np.errstate(divide="ignore"):
-        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+    inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)  # rays along a face
     t0 = ((lo_t - o) * inv)
     t1 = ((hi_t - o) * inv)
     tn = torch.minimum(t0, t1).amax(-1).clamp_min(0)
