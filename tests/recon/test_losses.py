@@ -325,11 +325,12 @@ def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
             monkeypatch.setattr(type(term), hook,
                                 lambda self, *a, _o=orig, _h=hook: called.setdefault(self.name, set()).add(_h) or _o(self, *a))
     monkeypatch.setattr(context, "knn", lambda *a, **k: called.setdefault("knn", set()).add("call"))
-    off = {"density": 0.0, "volume": 0.0, "floor": 0.0, "settle": 0.0, "motion": 0.0, "smooth": 0.0, "opacity": 0.0}
+    off = {"density": 0.0, "volume": 0.0, "floor": 0.0, "settle": 0.0, "motion": 0.0, "smooth": 0.0, "opacity": 0.0,
+           "coherence": 0.0}
     cfg = small_config(phases={"iterations": 80}, loss=off)
     reconstruct(load_dataset(blob), tmp_path / "z", cfg, log=quiet)
     zero = {t.name for t in TERMS if all(getattr(cfg.loss, k) == 0 for k in t.keys())}
-    assert zero == {"density", "volume", "floor", "settle", "motion", "smooth", "opacity"}
+    assert zero == {"density", "volume", "floor", "settle", "motion", "smooth", "opacity", "coherence"}
     assert not zero & set(called) and "knn" not in called
     assert {"image", "hull", "aniso", "color", "residual_motion"} <= set(called)  # the others ran
 
@@ -384,3 +385,49 @@ def test_a_new_term_is_one_module_one_registry_line_and_one_preset_key(blob, tmp
     # the registry refuses a term whose name or key is taken
     with pytest.raises(ValueError, match="registered twice"):
         terms.check_registry(terms.TERMS + (SpreadTerm("spread2", (("rgb", 1.0),)),))
+
+
+def test_velocity_incoherence_is_zero_for_a_coherent_flow_and_matches_a_direct_sum():
+    """coherence.velocity_incoherence: 0 when every particle moves alike, whatever the speed; else
+    mean_i |v_i - vbar_i|^2 with vbar the poly6-weighted mean over i's neighbours and itself (a
+    dense sum); gradients reach the velocities, not the weights' positions."""
+    from gf_core.recon.terms.coherence import velocity_incoherence
+    from gf_core.sph.neighbors import knn
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(150, 3, generator=g, dtype=torch.float64) * 0.4
+    h = 0.1
+    idx, _ = knn(x, 64, h)
+    assert float(velocity_incoherence(torch.tensor([[3.0, -1.0, 2.0]], dtype=torch.float64).expand(150, 3),
+                                      idx, x, h)) < 1e-20
+    v = torch.randn(150, 3, generator=g, dtype=torch.float64).requires_grad_(True)
+    xr = x.clone().requires_grad_(True)
+    val = velocity_incoherence(v, idx, xr, h)
+    w = poly6_sq(((x[:, None] - x[None]) ** 2).sum(-1), h)  # self term on the diagonal
+    vbar = (w @ v.detach()) / w.sum(1, keepdim=True)
+    assert float(val) == pytest.approx(float(((v.detach() - vbar) ** 2).sum(-1).mean()), rel=1e-10)
+    val.backward()
+    assert float(v.grad.abs().max()) > 0 and xr.grad is None
+
+
+def test_coherence_term_reaches_the_neighbouring_frames_residuals(small_blob, tmp_path):
+    """In the trainer (loss.coherence) the velocity at frame j is the central difference over frames
+    j - 1 and j + 1 (one-sided at the clip's ends): only their residuals get gradients, and the
+    frozen decoder none."""
+    from gf_core.recon.terms import COHERENCE
+
+    cfg = quick_config(phases={"iterations": 200, "residuals_from": 3}, loss={"coherence": 0.01})
+    tr = Trainer(cfg, load_dataset(small_blob), out=tmp_path / "c", log=quiet)
+    tr.initialise()
+    tr.phase = 3
+    tr.set_rates(0.5, 0.5)  # phase 3's frozen decoder
+    with torch.no_grad():
+        tr.model.decoder.residual_dp.normal_(0, 0.01)
+    times = tr.views.unique_times
+    last = len(times) - 1
+    for j, frames in ((0, {0, 1}), (2, {1, 3}), (last, {last - 1, last})):
+        tr.model.decoder.residual_dp.grad = None
+        term_at(tr, COHERENCE, times[j]).backward()
+        g = tr.model.decoder.residual_dp.grad.abs().sum((0, 2))
+        assert set(torch.nonzero(g).flatten().tolist()) == frames
+    assert tr.model.decoder.features.grad is None

@@ -5,13 +5,14 @@ plus its line here; its weight is a key of the presets (``[loss]``), which ``con
 takes from this list. Weights of 0 compute nothing.
 
 Per decoded time (the mean over the step's times): settle, density, floor, smooth,
-residual_motion, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
+residual_motion, coherence, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
 the step's images), hull (all its masked images), motion (across its times)."""
 
 from __future__ import annotations
 
 from .aniso import ANISO
 from .base import NEEDS, PHASES, RAMPS, Term
+from .coherence import COHERENCE
 from .color import COLOR
 from .density import DENSITY
 from .floor import FLOOR
@@ -32,6 +33,7 @@ TERMS: tuple[Term, ...] = (
     FLOOR,
     SMOOTH,
     RESIDUAL_MOTION,
+    COHERENCE,
     VOLUME,
     ANISO,
     OPACITY,
