@@ -163,6 +163,28 @@ def main():
             # world position of the active bounding box's centre
             c = [(a + b) / 2 for a, b in zip(lo, hi)]
             res["vdb_centre"] = list(grid.transform.indexToWorld(c))
+        elif kind == "volume_import":
+            # an exported OpenVDB file through Blender's own import, rendered alone in the smoke material
+            from bl_ext.user_default.gaussfluids.render_data import scene_builder
+
+            sc = bpy.context.scene
+            recon_obj = sc.objects[res["object"]]
+            recon_obj.hide_render = True
+            path = Path(step["path"])
+            before = set(bpy.data.objects)
+            r = bpy.ops.object.volume_import(filepath=str(path), directory=str(path.parent), files=[{"name": path.name}])
+            res["volume_import"] = list(r)
+            vol = next(o for o in bpy.data.objects if o not in before)
+            vol.data.grids.load()
+            res["volume_grids"] = [g.name for g in vol.data.grids]
+            corners = np.array([vol.matrix_world @ __import__("mathutils").Vector(c) for c in vol.bound_box])
+            res["volume_bounds"] = [corners.min(0).tolist(), corners.max(0).tolist()]
+            vol.data.materials.append(scene_builder.make_material("smoke"))
+            sc.frame_set(step["frame"])
+            sc.render.filepath = str(out / "vdb_import.png")
+            bpy.ops.render.render(write_still=True)
+            bpy.data.objects.remove(vol)
+            recon_obj.hide_render = False
         elif kind == "import_bad":
             try:
                 r = bpy.ops.import_scene.gaussfluids(filepath=step["path"])
