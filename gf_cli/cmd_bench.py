@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 
@@ -137,6 +138,14 @@ def register(sub):
     m.add_argument("--seeds", default=None, metavar="S[,S]", help="reconstruction seeds (default: the suite's)")
     m.add_argument("--no-per-frame", action="store_true", help="skip the per-frame 3DGS fits (default: run them)")
     m.add_argument("--out", type=Path, default=Path("bench_scenes"), help="output folder (datasets, runs, JSON, PNG)")
+    where = m.add_mutually_exclusive_group()
+    where.add_argument("--local", type=int, default=None, metavar="N",
+                       help="N jobs at a time on this machine (default 1: every reconstruction has the whole machine)")
+    where.add_argument("--ray", default=None, metavar="ADDRESS",
+                       help="the jobs as Ray tasks on this cluster ('auto': the one `ray start` made here)")
+    m.add_argument("--cpus-per-job", type=float, default=None, metavar="K",
+                   help="threads (and Ray CPUs) of each reconstruction, fit and evaluation (default: this machine's "
+                        "cores / N; with --ray 2)")
     m.set_defaults(func=run_scenes)
     d = bsub.add_parser("decoder", help="numpy decoder (the Blender extension's) against the torch one",
                         description="Times one evaluation of the time-continuous decoder (paper Eq. 4, default "
@@ -367,7 +376,17 @@ def run_scenes(args) -> int:
     seeds = _ints(args.seeds, "--seeds", 0) if args.seeds else None
     suite = load_suite(args.suite, quick=args.quick, only=only)
     args.out.mkdir(parents=True, exist_ok=True)
-    recs = bench_scenes(args.out, suite, seeds=seeds, per_frame=not args.no_per_frame)
+    from gf_core.batch import LocalExecutor, RayExecutor
+    from gf_core.errors import InputError
+
+    if args.local is not None and args.local < 1:
+        raise InputError("--local", f"must be at least 1, got {args.local}")
+    if args.cpus_per_job is not None and not args.cpus_per_job > 0:
+        raise InputError("--cpus-per-job", f"must be > 0, got {args.cpus_per_job}")
+    n = args.local or 1
+    cpus = args.cpus_per_job or (2.0 if args.ray else max(1, (os.cpu_count() or 1) // n))
+    ex = RayExecutor(args.ray) if args.ray else LocalExecutor(n)
+    recs = bench_scenes(args.out, suite, seeds=seeds, per_frame=not args.no_per_frame, executor=ex, cpus=cpus)
     print()
     cols = [c for c in COLUMNS if any(r.get(c[0]) is not None for r in recs) or c[0] in ("scene", "missed")]
     print(table(table_rows(recs), cols))

@@ -17,11 +17,11 @@ if len(sys.argv) > 1 and sys.argv[1] in SIM_COMMANDS and not {"OMP_WAIT_POLICY",
 
 from gf_core.errors import GFError  # noqa: E402
 
-from . import (cmd_addon, cmd_bench, cmd_demo, cmd_edit, cmd_evaluate, cmd_export, cmd_inspect,  # noqa: E402
+from . import (cmd_addon, cmd_batch, cmd_bench, cmd_demo, cmd_edit, cmd_evaluate, cmd_export, cmd_inspect,  # noqa: E402
                cmd_predict, cmd_reconstruct, cmd_render_dataset, cmd_simulate)
 
 COMMANDS = [cmd_demo, cmd_simulate, cmd_render_dataset, cmd_reconstruct, cmd_evaluate, cmd_predict, cmd_edit,
-            cmd_export, cmd_inspect, cmd_bench, cmd_addon]
+            cmd_export, cmd_inspect, cmd_bench, cmd_batch, cmd_addon]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,5 +1,7 @@
 """Small helpers shared by the tests (the root conftest puts this folder on the import path)."""
 
+import numpy as np
+
 from gf_core.recon.config import make_config
 
 
@@ -27,3 +29,15 @@ def quick_config(**over):
                     "model": {"init_particles": 300, "max_particles": 600},
                     "decoder": {"hidden_width": 64, "hidden_layers": 2},
                     "train": {"eval_every": 100, "checkpoint_every": 1000}}, over)
+
+
+def assert_same_render(a: np.ndarray, b: np.ndarray, what="") -> None:
+    """Same seed, same pixels -- up to what a multi-threaded build of Blender's scene (BVH, fluid
+    surface) can change from one process to the next: a few pixels come back a level or so apart,
+    and up to 0.5 % of them (rays that graze another triangle at the fluid's edge) by more; a
+    different seed changes the noise everywhere."""
+    assert a.shape == b.shape, what
+    diff = np.abs(a.astype(np.int16) - b.astype(np.int16))
+    pix = diff.max(-1) if diff.ndim == 3 else diff
+    assert float((pix > 0).mean()) < 0.02 and float((pix > 3).mean()) < 0.005, \
+        (what, int(diff.max()), float((pix > 0).mean()), float((pix > 3).mean()))

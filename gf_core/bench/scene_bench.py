@@ -12,8 +12,10 @@ the project's own commands and judged the way a user would judge it:
 4. ``gf-cli bench reconstruct --per-frame`` at the same total time: every frame fitted on its own
    (3DGS, no time model), the simplest thing a user could do instead.
 
-Every step runs as its own ``gf-cli`` process (what a user runs, nothing shared between steps but
-files) and is skipped when its output is already complete, so an interrupted matrix resumes. The
+Every step is a batch job (``gf_core.batch``): its own ``gf-cli`` process (what a user runs,
+nothing shared between steps but files), skipped when its output is already complete, so an
+interrupted matrix resumes; ``gf-cli bench scenes --local N`` or ``--ray ADDRESS`` runs N at a
+time here or on a Ray cluster. The
 result is ``bench_scenes.json``, a table against the suite's targets, and a plot per scene of
 the held-out PSNR and both Chamfer directions per frame beside the per-frame fit.
 """
@@ -22,9 +24,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-import time
 import tomllib
 from pathlib import Path
 
@@ -92,69 +91,46 @@ def load_suite(path: Path | None = None, *, quick: bool = False, only: list[str]
     return {"scenes": scenes, "targets": targets, "path": str(path), "quick": quick}
 
 
-def _gf(args: list, log, what: str, log_file: Path) -> None:
-    """One ``gf-cli`` command as its own process; its output goes to ``log_file``."""
-    cmd = [sys.executable, "-m", "gf_cli.main"] + [str(a) for a in args]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    Path(log_file).write_text(f"$ gf-cli {' '.join(map(str, args))}\n{proc.stdout}{proc.stderr}")
-    if proc.returncode != 0:
-        tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
-        raise InputError(what, f"`gf-cli {' '.join(map(str, args[:2]))} ...` failed ({proc.returncode}): "
-                               + " | ".join(tail))
-    log(f"  {what}: {time.perf_counter() - t0:.1f} s")
+def scene_jobs(suite: dict, *, seeds: list[int] | None = None, per_frame: bool = True,
+               cpus: float = 2.0) -> dict:
+    """The matrix as batch jobs ({name: spec}, ``gf_core.batch.expand``'s form): per scene
+    ``NAME/sim``, ``NAME/dataset``, ``NAME/per_frame`` and, per seed, ``NAME/recon_seedS`` and
+    ``NAME/eval_seedS``; ``cpus`` threads for each reconstruction and per-frame fit."""
+    from ..recon.config import make_config
 
-
-def make_dataset(name: str, spec: dict, work: Path, log=print) -> Path:
-    """Simulate and render the scene into ``work/name/``; each step skipped when complete."""
-    d = work / name
-    d.mkdir(parents=True, exist_ok=True)
-    sim = d / "sim.h5"
-    if not sim.exists():
-        _gf(["simulate", spec["scene"], "--solver", spec["solver"], "--particles", spec["particles"],
-             "--fps", spec["fps"], "--seconds", spec["seconds"], "--out", sim, "--quiet"], log, f"{name}: simulate",
-            d / "simulate.log")
-    ds = d / "dataset"
-    if not (ds / "transforms_train.json").exists():
-        args = ["render-dataset", sim, "--out", ds, "--views", spec["views"], "--test-views", spec["test_views"],
-                "--resolution", spec["resolution"], "--samples", spec["samples"], "--frames", spec["frames"],
-                "--arc", spec["arc"], "--elevation", spec["elevation"], "--test-elevation", spec["test_elevation"],
-                "--blob", spec["blob"], "--time-format", spec["time_format"]]
+    jobs = {}
+    for name, spec in suite["scenes"].items():
+        jobs[f"{name}/sim"] = {"run": ["simulate", spec["scene"], "--solver", spec["solver"], "--particles",
+                                       spec["particles"], "--fps", spec["fps"], "--seconds", spec["seconds"],
+                                       "--out", "{dir}/sim.h5", "--quiet"], "outputs": ["sim.h5"]}
+        args = ["render-dataset", f"{{{name}/sim}}/sim.h5", "--out", "{dir}", "--views", spec["views"],
+                "--test-views", spec["test_views"], "--resolution", spec["resolution"], "--samples", spec["samples"],
+                "--frames", spec["frames"], "--arc", spec["arc"], "--elevation", spec["elevation"],
+                "--test-elevation", spec["test_elevation"], "--blob", spec["blob"], "--time-format", spec["time_format"]]
         if spec["transmission"] >= 0:
             args += ["--transmission", spec["transmission"]]
         if spec["denoise"]:
             args.append("--denoise")
         if not spec["scene_box"]:
             args.append("--no-scene-box")
-        _gf(args, log, f"{name}: render-dataset", d / "render-dataset.log")
-    return ds
-
-
-def _complete(run: Path) -> bool:
-    return (run / "recon.h5").exists() and (run / "eval.json").exists()
-
-
-def reconstruct_and_evaluate(name: str, spec: dict, ds: Path, work: Path, seed: int, log=print) -> dict:
-    run = work / name / f"recon_seed{seed}"
-    if not _complete(run):
-        run.mkdir(parents=True, exist_ok=True)
-        _gf(["reconstruct", ds, "--out", run, "--preset", spec["preset"], "--time-budget", spec["time_budget"],
-             "--seed", seed, "--force", "--quiet"], log, f"{name}: reconstruct (seed {seed})", run / "reconstruct.log")
-        _gf(["evaluate", run, "--dataset", ds], log, f"{name}: evaluate (seed {seed})", run / "evaluate.log")
-    return json.loads((run / "eval.json").read_text())
-
-
-def per_frame_fit(name: str, spec: dict, ds: Path, work: Path, log=print) -> dict:
-    out = work / name / "per_frame"
-    res = out / "bench_reconstruct.json"
-    if not res.exists():
-        from ..recon.config import make_config
-
-        n = make_config(spec["preset"]).model.max_particles
-        _gf(["bench", "reconstruct", ds, "--per-frame", "--preset", spec["preset"], "--iterations", 1_000_000,
-             "--particles", n, "--time-budget", spec["time_budget"], "--out", out], log, f"{name}: per-frame 3DGS fit",
-            work / name / "per-frame.log")
-    return json.loads(res.read_text())
+        jobs[f"{name}/dataset"] = {"run": args, "outputs": ["transforms_train.json"]}
+        ds = f"{{{name}/dataset}}"
+        if per_frame:
+            n = make_config(spec["preset"]).model.max_particles
+            jobs[f"{name}/per_frame"] = {
+                "run": ["bench", "reconstruct", ds, "--per-frame", "--preset", spec["preset"], "--iterations",
+                        1_000_000, "--particles", n, "--time-budget", spec["time_budget"], "--out", "{dir}"],
+                "outputs": ["bench_reconstruct.json"], "num_cpus": cpus}
+        for seed in (seeds or spec["seeds"]):
+            jobs[f"{name}/recon_seed{seed}"] = {
+                "run": ["reconstruct", ds, "--out", "{dir}", "--preset", spec["preset"], "--time-budget",
+                        spec["time_budget"], "--seed", seed, "--quiet"], "outputs": ["recon.h5"], "num_cpus": cpus}
+            jobs[f"{name}/eval_seed{seed}"] = {
+                "run": ["evaluate", f"{{{name}/recon_seed{seed}}}", "--dataset", ds, "--out", "{dir}"],
+                "outputs": ["eval.json"], "num_cpus": cpus}
+    for spec in jobs.values():
+        spec["run"] = [str(a) for a in spec["run"]]
+    return jobs
 
 
 def scene_record(name: str, spec: dict, ev: dict, pf: dict | None, targets: dict) -> dict:
@@ -231,18 +207,26 @@ def judge(rec: dict, t: dict) -> dict:
 
 
 def bench_scenes(work: Path, suite: dict, *, seeds: list[int] | None = None, per_frame: bool = True,
-                 log=print) -> list[dict]:
+                 executor=None, cpus: float = 2.0, log=print) -> list[dict]:
     """Every scene of ``suite`` (``load_suite``) made, reconstructed per seed, evaluated and set
-    beside its per-frame fit. One record per (scene, seed)."""
+    beside its per-frame fit, as batch jobs on ``executor`` (default: one at a time here); jobs
+    already complete are skipped. One record per (scene, seed) whose jobs all finished."""
+    from ..batch import LocalExecutor, expand, run_jobs
+
     work = Path(work)
+    jobs = expand(scene_jobs(suite, seeds=seeds, per_frame=per_frame, cpus=cpus), work, suite["path"],
+                  default_retries=0)
+    states = {r["job"]: r["state"] for r in run_jobs(jobs, work, executor or LocalExecutor(1), log=log)}
+    ok = {n for n, st in states.items() if st.startswith("done")}
     records = []
     for name, spec in suite["scenes"].items():
-        log(f"scene {name} ({spec['scene']}, {spec['solver']}, {spec['views']} views at {spec['resolution']}^2, "
-            f"budget {spec['time_budget']:g} s)")
-        ds = make_dataset(name, spec, work, log)
-        pf = per_frame_fit(name, spec, ds, work, log) if per_frame else None
+        pf = json.loads((work / name / "per_frame" / "bench_reconstruct.json").read_text()) \
+            if per_frame and f"{name}/per_frame" in ok else None
         for seed in (seeds or spec["seeds"]):
-            ev = reconstruct_and_evaluate(name, spec, ds, work, seed, log)
+            if f"{name}/eval_seed{seed}" not in ok:
+                log(f"  {name} seed {seed}: not evaluated (a job it needs did not finish: see the batch summary)")
+                continue
+            ev = json.loads((work / name / f"eval_seed{seed}" / "eval.json").read_text())
             rec = scene_record(name, spec, ev, pf, suite["targets"])
             rec["seed"] = seed
             records.append(rec)

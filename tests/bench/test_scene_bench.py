@@ -14,7 +14,6 @@ def test_bench_scenes_quick_makes_every_scene_kind_and_judges_it(tmp_path, monke
     """gf-cli bench scenes --quick: every scene of the suite simulated, rendered (with its rig, look
     and layout), reconstructed, evaluated and set beside its per-frame fit, with finite, sensible
     figures; a re-run finds every step complete and runs none."""
-    from gf_core.bench import scene_bench
     from gf_core.bench.scene_bench import load_suite
 
     out = tmp_path / "m"
@@ -46,5 +45,9 @@ def test_bench_scenes_quick_makes_every_scene_kind_and_judges_it(tmp_path, monke
     manifest = json.loads((out / "splash" / "dataset" / "manifest.json").read_text())
     assert manifest["options"]["transmission"] == pytest.approx(0.9) and manifest["options"]["blob"] == 2.0
     # a re-run: every step complete, no command run
-    monkeypatch.setattr(scene_bench, "_gf", lambda *a, **k: pytest.fail(f"re-ran {a[2]}"))
+    from gf_core.batch import runner
+
+    ran = []
+    monkeypatch.setattr(runner, "attempt", lambda job, *a: ran.append(job.name))
     assert gf_cli(["bench", "scenes", "--quick", "--out", str(out), "--only", "splash,no_box"]) == 0
+    assert ran == []

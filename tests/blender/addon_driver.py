@@ -166,6 +166,7 @@ def main():
         elif kind == "volume_import":
             # an exported OpenVDB file through Blender's own import, rendered alone in the smoke material
             from bl_ext.user_default.gaussfluids.render_data import scene_builder
+            from mathutils import Vector
 
             sc = bpy.context.scene
             recon_obj = sc.objects[res["object"]]
@@ -177,7 +178,7 @@ def main():
             vol = next(o for o in bpy.data.objects if o not in before)
             vol.data.grids.load()
             res["volume_grids"] = [g.name for g in vol.data.grids]
-            corners = np.array([vol.matrix_world @ __import__("mathutils").Vector(c) for c in vol.bound_box])
+            corners = np.array([vol.matrix_world @ Vector(c) for c in vol.bound_box])
             res["volume_bounds"] = [corners.min(0).tolist(), corners.max(0).tolist()]
             vol.data.materials.append(scene_builder.make_material("smoke"))
             sc.frame_set(step["frame"])

@@ -10,7 +10,7 @@ import pytest
 from gf_cli.main import COMMANDS, build_parser, main
 
 EXPECTED = {"demo", "simulate", "render-dataset", "reconstruct", "evaluate", "predict", "edit", "inspect", "bench",
-            "export", "addon"}
+            "export", "addon", "batch"}
 
 
 def test_help_lists_commands_and_each_has_help(capsys):
