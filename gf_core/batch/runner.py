@@ -81,7 +81,8 @@ def attempt(job: Job, out: str, number: int) -> dict:
     with open(logf, "w") as f:
         f.write("$ " + " ".join(job.argv) + "\n")
         f.flush()
-        rc = subprocess.run(job.argv, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=d).returncode
+        rc = subprocess.run(job.argv, stdout=f, stderr=subprocess.STDOUT, env=env,
+                            cwd=job.cwd or d).returncode
     wall = time.time() - t0
     res = {"ok": False, "rc": rc, "wall_s": wall, "host": socket.gethostname(), "log": str(logf)}
     if rc != 0:

@@ -20,7 +20,8 @@
     memory = "8GB"
 
 Every job writes into its own folder ``OUT/<name>`` (``{dir}``); ``{other}`` is another job's
-folder and makes this job wait for it (as does ``after = [...]``). ``outputs`` are the files the
+folder and makes this job wait for it (as does ``after = [...]``). Relative paths in ``run`` start
+at the suite file's folder (on a cluster: give absolute paths on the shared folder). ``outputs`` are the files the
 job must leave (relative to its folder) before it counts as done.
 """
 
@@ -56,6 +57,7 @@ class Job:
     num_gpus: float = 0.0
     memory: int | None = None  # bytes
     retries: int = 2
+    cwd: str | None = None  # where relative paths in argv start (None: the job's own folder)
 
 
 def gf_cli_argv(args: list) -> list:
@@ -131,11 +133,12 @@ def load_suite(path, out: Path | None = None) -> tuple[list[Job], Path]:
     specs = doc.get("jobs", {})
     if not specs:
         raise InputError(path, "has no jobs ([jobs.NAME] tables with a run = [...] command)")
-    return expand(specs, out, str(path), default_retries=batch.get("retries", 2)), out
+    return expand(specs, out, str(path), default_retries=batch.get("retries", 2), cwd=path.parent.resolve()), out
 
 
-def expand(specs: dict, out: Path, where: str, *, default_retries: int = 2) -> list[Job]:
-    """Jobs from ``{name: spec}`` (the [jobs] table's form), placeholders resolved against ``out``."""
+def expand(specs: dict, out: Path, where: str, *, default_retries: int = 2, cwd: Path | None = None) -> list[Job]:
+    """Jobs from ``{name: spec}`` (the [jobs] table's form), placeholders resolved against ``out``;
+    relative paths in the commands start at ``cwd`` (the suite file's folder)."""
     out = Path(out).resolve()
     names = set(specs)
     # chunked renders: NAME.chunkK render frame ranges, NAME merges them
@@ -177,7 +180,8 @@ def expand(specs: dict, out: Path, where: str, *, default_retries: int = 2) -> l
             if Path(o).is_absolute() or ".." in Path(o).parts:
                 raise InputError(w, f"outputs: {o!r} must be a path inside the job's folder")
         args = [_resolve(a, names, dirs, name, w, deps) for a in spec["run"]]
-        common = dict(num_cpus=num_cpus, num_gpus=num_gpus, memory=memory, retries=retries)
+        common = dict(num_cpus=num_cpus, num_gpus=num_gpus, memory=memory, retries=retries,
+                      cwd=str(cwd) if cwd else None)
         chunks = spec.get("chunks", 1)
         if not isinstance(chunks, int) or chunks < 1:
             raise InputError(w, f"chunks must be a whole number >= 1, got {chunks!r}")
@@ -197,7 +201,8 @@ def expand(specs: dict, out: Path, where: str, *, default_retries: int = 2) -> l
             parts.append(cname)
         merge = [sys.executable, "-m", MERGE_MODULE, "--out", str(dirs[name]), "--frames", args[i]] + \
             [str(out / p) for p in parts]
-        jobs.append(Job(name, merge, outputs, parts, num_cpus=1.0, num_gpus=0.0, memory=None, retries=retries))
+        jobs.append(Job(name, merge, outputs, parts, num_cpus=1.0, num_gpus=0.0, memory=None, retries=retries,
+                        cwd=str(cwd) if cwd else None))
     return ordered(jobs, where)
 
 

@@ -70,6 +70,7 @@ run = ["simulate", "water_sphere", "--out", "{dir}/sim.h5"]
                                      str((tmp_path / "o" / "recon").resolve())]
     assert by["recon"].num_gpus == 1 and by["recon"].memory == 2 * 1024 ** 3
     assert sorted(by["eval"].after) == ["data", "recon"]
+    assert all(j.cwd == str(tmp_path.resolve()) for j in jobs)  # relative paths start at the suite's folder
 
 
 @pytest.mark.parametrize("body, message", [
@@ -109,6 +110,7 @@ def test_retries_blocks_and_skips_what_is_done(tmp_path):
         py_job("c", "import sys; sys.exit(1)", after=["a"], retries=1),       # fails every time
         py_job("d", "open('d.txt', 'w').write('4')", after=["c"]),             # needs c: blocked
         py_job("e", "pass", outputs=["never.txt"], retries=0),               # leaves no output: failed
+        Job("f", [sys.executable, "-c", "open('rel.txt', 'w').write('6')"], cwd=str(tmp_path)),  # relative to cwd
     ]
     lines = []
     rows = {r["job"]: r for r in run_jobs(jobs, out, LocalExecutor(2), log=lines.append)}
@@ -118,6 +120,7 @@ def test_retries_blocks_and_skips_what_is_done(tmp_path):
     assert rows["c"]["state"] == "failed" and rows["c"]["attempts"] == 2 and "exit 1" in rows["c"]["note"]
     assert rows["d"]["state"] == "blocked" and rows["d"]["attempts"] == 0
     assert rows["e"]["state"] == "failed" and "left no never.txt" in rows["e"]["note"]
+    assert rows["f"]["state"] == "done" and (tmp_path / "rel.txt").read_text() == "6"
     assert any("b: pending (attempt 1 failed: exit 3" in ln for ln in lines)
     assert (out / "_batch" / "logs" / "b.1.log").exists() and (out / "_batch" / "logs" / "b.2.log").exists()
     # a re-run skips the finished jobs, retries the others
