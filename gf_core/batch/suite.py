@@ -29,11 +29,11 @@ from __future__ import annotations
 
 import re
 import sys
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
+from ..formats.toml_file import read_toml
 
 # the gf-cli commands a job may run (the others are interactive, or batch itself)
 COMMANDS = ("simulate", "render-dataset", "reconstruct", "evaluate", "predict", "edit", "export", "bench")
@@ -117,12 +117,7 @@ def load_suite(path, out: Path | None = None) -> tuple[list[Job], Path]:
     """The suite's jobs (chunked renders expanded, placeholders resolved, in an order where every
     job comes after what it needs) and the output folder."""
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "no such suite file") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(path, f"is not valid TOML ({e})") from None
+    doc = read_toml(path, "suite file")
     unknown = set(doc) - {"batch", "jobs"}
     if unknown:
         raise InputError(path, f"unknown top-level table(s) {', '.join(sorted(unknown))} (expected [batch], [jobs.NAME])")

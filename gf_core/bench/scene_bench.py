@@ -24,12 +24,12 @@ from __future__ import annotations
 
 import json
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..formats.toml_file import read_toml
 
 SUITE = Path(__file__).with_name("scenes.toml")
 # the keys a scene may set (the suite's [defaults] gives every one a value)
@@ -47,12 +47,7 @@ def load_suite(path: Path | None = None, *, quick: bool = False, only: list[str]
     """{"scenes": {name: spec}, "targets": {...}} with every scene's keys filled from [defaults]
     (and [quick] with ``quick``). Unknown keys, scenes and bad values are errors naming the file."""
     path = Path(path or SUITE)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "suite file does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(path, f"not valid TOML ({e})") from None
+    data = read_toml(path, "suite file")
     for sec in data:
         if sec not in ("defaults", "quick", "scenes", "targets"):
             raise InputError(path, f"unknown section [{sec}] (known: defaults, quick, scenes, targets)")

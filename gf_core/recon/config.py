@@ -10,11 +10,11 @@ sections or keys, and values of the wrong type, are errors that name the file an
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
+from ..formats.toml_file import read_toml
 from .decoder import DecoderConfig
 from .strategy import DensifyConfig
 from . import terms
@@ -309,13 +309,7 @@ def _merge(cfg: ReconConfig, data: dict, where: str) -> None:
 
 
 def load_toml(path) -> dict:
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "config file does not exist")
-    try:
-        return tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(path, f"not valid TOML ({e})") from None
+    return read_toml(path, "config file")
 
 
 def make_config(preset: str | None = "water", config_file=None, overrides: dict | None = None) -> ReconConfig:

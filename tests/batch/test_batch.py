@@ -85,7 +85,7 @@ run = ["simulate", "water_sphere", "--out", "{dir}/sim.h5"]
     ('[jobs.a]\nrun = ["simulate"]\noutputs = ["../x"]', "must be a path inside the job's folder"),
     ('[jobs.a]\nrun = "simulate"', "run must be a list of gf-cli arguments"),
     ("[batch]\nout = 'o'", "has no jobs"),
-    ("[jobs.a\nrun = 1", "is not valid TOML"),
+    ("[jobs.a\nrun = 1", "not valid TOML"),
 ])
 def test_bad_suites_give_one_clear_line(tmp_path, capsys, body, message):
     suite = write(tmp_path / "s.toml", body)
