@@ -326,11 +326,12 @@ def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
                                 lambda self, *a, _o=orig, _h=hook: called.setdefault(self.name, set()).add(_h) or _o(self, *a))
     monkeypatch.setattr(context, "knn", lambda *a, **k: called.setdefault("knn", set()).add("call"))
     off = {"density": 0.0, "volume": 0.0, "floor": 0.0, "settle": 0.0, "motion": 0.0, "smooth": 0.0, "opacity": 0.0,
-           "coherence": 0.0}
+           "coherence": 0.0, "incompressible": 0.0}
     cfg = small_config(phases={"iterations": 80}, loss=off)
     reconstruct(load_dataset(blob), tmp_path / "z", cfg, log=quiet)
     zero = {t.name for t in TERMS if all(getattr(cfg.loss, k) == 0 for k in t.keys())}
-    assert zero == {"density", "volume", "floor", "settle", "motion", "smooth", "opacity", "coherence"}
+    assert zero == {"density", "volume", "floor", "settle", "motion", "smooth", "opacity", "coherence",
+                    "incompressible"}
     assert not zero & set(called) and "knn" not in called
     assert {"image", "hull", "aniso", "color", "residual_motion"} <= set(called)  # the others ran
 
@@ -431,3 +432,52 @@ def test_coherence_term_reaches_the_neighbouring_frames_residuals(small_blob, tm
         g = tr.model.decoder.residual_dp.grad.abs().sum((0, 2))
         assert set(torch.nonzero(g).flatten().tolist()) == frames
     assert tr.model.decoder.features.grad is None
+
+
+def test_density_spread_is_zero_for_one_volume_and_pulls_frames_together():
+    """incompressible.density_spread: 0 when every frame has the same mean density (however the
+    particles sit); a frame packed tighter than another raises it, and the gradient spreads the
+    dense frame out and draws the sparse one in."""
+    from gf_core.recon.terms.incompressible import density_spread
+    from gf_core.sph.density import sph_density_knn
+    from gf_core.sph.neighbors import knn
+
+    g = torch.stack(torch.meshgrid(*[torch.arange(6, dtype=torch.float64)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    h = 2.5
+    perm = g[torch.randperm(len(g), generator=torch.Generator().manual_seed(0))]
+
+    def dens(x):
+        return sph_density_knn(x, knn(x.detach(), 64, h, sorted=False)[0], h)
+
+    assert float(density_spread([dens(g), dens(perm)])) < 1e-20  # the same set, reordered
+    dense = (0.8 * g).requires_grad_(True)
+    sparse = (1.0 * g).requires_grad_(True)
+    val = density_spread([dens(dense), dens(sparse)])
+    assert float(val.detach()) > 1e-3
+    val.backward()
+    # the gradient step (-grad) moves the dense frame's particles apart, the sparse frame's together
+    centre = g.mean(0)
+    out_dense = float(((dense.detach() - 0.8 * centre) * -dense.grad).sum())
+    out_sparse = float(((sparse.detach() - centre) * -sparse.grad).sum())
+    assert out_dense > 0 > out_sparse
+
+
+def test_incompressible_term_acts_across_the_steps_times(small_blob, tmp_path, monkeypatch):
+    """In the trainer (loss.incompressible) the term is evaluated once per step from phase 2 on,
+    over the step's decoded times."""
+    from gf_core.recon.terms.incompressible import IncompressibleTerm
+
+    seen = []
+    orig = IncompressibleTerm.step
+
+    def spy(self, ctx, s, w):
+        out = orig(self, ctx, s, w)
+        seen.append((ctx.phase, len(s.frames), None if out is None else float(out)))
+        return out
+
+    monkeypatch.setattr(IncompressibleTerm, "step", spy)
+    cfg = quick_config(phases={"iterations": 120}, loss={"incompressible": 0.05})
+    reconstruct(load_dataset(small_blob), tmp_path / "r", cfg, log=quiet)
+    assert seen and all(p >= 2 for p, _, _ in seen)
+    multi = [v for _, n, v in seen if n >= 2]
+    assert multi and all(v is not None and v >= 0 for v in multi) and max(multi) > 0

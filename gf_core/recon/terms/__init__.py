@@ -6,7 +6,7 @@ takes from this list. Weights of 0 compute nothing.
 
 Per decoded time (the mean over the step's times): settle, density, floor, smooth,
 residual_motion, coherence, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
-the step's images), hull (all its masked images), motion (across its times)."""
+the step's images), hull (all its masked images), motion, incompressible (across its times)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from .density import DENSITY
 from .floor import FLOOR
 from .hull import HULL
 from .image import IMAGE
+from .incompressible import INCOMPRESSIBLE
 from .motion import MOTION
 from .opacity import OPACITY
 from .residual_motion import RESIDUAL_MOTION
@@ -39,6 +40,7 @@ TERMS: tuple[Term, ...] = (
     OPACITY,
     COLOR,
     MOTION,
+    INCOMPRESSIBLE,
 )
 
 
