@@ -12,7 +12,8 @@ ROOT = Path(gf_core.__file__).parent
 # docs/architecture.md: errors, camera, formats -> native -> render, sph -> sim -> data -> recon -> eval
 # -> downstream -> bench (a package may import those of its own rank and before)
 RANK = {"errors": 0, "limits": 0.5, "camera": 1, "formats": 1, "native": 2, "render": 3, "sph": 3, "sim": 4,
-        "data": 5, "synthetic": 6, "recon": 6, "eval": 7, "downstream": 8, "bench": 9}
+        "data": 5, "synthetic": 6, "recon": 6, "eval": 7, "downstream": 8, "bench": 9,
+        "batch": 1.5}  # batch: errors and formats only
 FORBIDDEN = {("sim", "render"), ("recon", "eval")}  # named in docs/architecture.md
 ALLOWED_SAME_RANK = {("render", "sph"): False, ("sph", "render"): False, ("camera", "formats"): True,
                      ("formats", "camera"): False, ("synthetic", "recon"): False, ("recon", "synthetic"): False}
