@@ -21,6 +21,7 @@ import subprocess
 import time
 from pathlib import Path
 
+from ..formats.hdf5 import atomic_write_text
 from .suite import Job
 
 DONE_FILE = "_job.json"
@@ -38,9 +39,7 @@ def log_path(out: Path, job: Job, attempt: int) -> Path:
 
 def _write_json(path: Path, data) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(data, indent=1))
 
 
 def _files(d: Path) -> dict:

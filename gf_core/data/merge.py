@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..formats.hdf5 import atomic_write_text
 
 SPLITS = ("train", "test")
 
@@ -33,9 +34,7 @@ def _read_json(path: Path) -> dict:
 
 
 def _write_json(path: Path, data) -> None:  # as render_data/render_dataset.py writes them
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(data, indent=1))
 
 
 def _copy(src: Path, dst: Path) -> None:
