@@ -48,7 +48,7 @@ def write_nerf_dataset(root, split: str, images, cameras, times, view_ids, *, fp
 def write_smoke_dataset(grid_path: Path, out: Path, *, views: int = 5, test_views: int = 1, resolution: int = 128,
                          fov_deg: float = 40.0, arc_deg: float = 90.0, elevation_deg: float = 15.0,
                          test_elevation_deg: float | None = None, frames: slice = slice(None),
-                         log=print) -> Path:
+                         extinction: float = 15.0, ambient: float = 1.0, light: float = 0.0, log=print) -> Path:
     """Render ``grid_path`` (a grid.h5) into a NeRF-layout dataset in ``out``: grayscale PNGs,
     transforms_{train,test}.json with the grid's box as ``scene_box`` and ``gt_density`` naming a
     copy of the grid (what ``gf-cli evaluate`` compares a smoke reconstruction with)."""
@@ -68,7 +68,8 @@ def write_smoke_dataset(grid_path: Path, out: Path, *, views: int = 5, test_view
         for split, cams, v0 in (("train", train, 0), ("test", test, len(train))):
             for v, cam in enumerate(cams):
                 rel = f"{split}/v{v:02d}_f{f:05d}.png"
-                img = render_density(g.density[f], g.domain_min, g.domain_max, cam)
+                img = render_density(g.density[f], g.domain_min, g.domain_max, cam, extinction=extinction,
+                                     ambient=ambient, light=light)
                 write_png(out / rel, img[..., None])
                 entries[split].append(frame_entry(rel, cam, float(g.times[f]), v0 + v))
         log(f"frame {k + 1}/{len(keep)} (t = {g.times[f]:.3f} s): {len(train) + len(test)} images")
@@ -76,7 +77,8 @@ def write_smoke_dataset(grid_path: Path, out: Path, *, views: int = 5, test_view
     if Path(grid_path).resolve() != gt.resolve():
         shutil.copyfile(grid_path, gt)
     extra = {"scene_box": [list(map(float, g.domain_min)), list(map(float, g.domain_max))],
-             "background": [0.0, 0.0, 0.0], "gt_density": gt.name, "time_unit": "seconds"}
+             "background": [0.0, 0.0, 0.0], "gt_density": gt.name, "time_unit": "seconds",
+             "volume_render": {"extinction": extinction, "ambient": ambient, "light_from_above": light}}
     for split, e in entries.items():
         if e:
             write_transforms(out, split, e, fps=g.fps, extra=extra)

@@ -53,22 +53,20 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def _density_vs_grid(path: Path, times, states, log) -> dict:
-    """The reconstruction's density (its Gaussians summed at the grid's cell centres) against the
-    true density grid (a smoke dataset's ``gt_density``), at the frames both have."""
+    """The reconstruction's density (its Gaussians averaged over each of the grid's cells) against
+    the true density grid (a smoke dataset's ``gt_density``), at the frames both have."""
     from ..formats.hdf5 import read_grid
-    from .metrics import density_agreement, gaussian_density
+    from .metrics import density_agreement, gaussian_cell_mean
 
     g = read_grid(path)
-    lo, cell = np.asarray(g.domain_min), g.cell
-    axes = [lo[a] + (np.arange(g.density.shape[1 + a]) + 0.5) * cell[a] for a in range(3)]
-    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     recon, truth, used = [], [], []
     for t, st in zip(times, states):
         f = int(np.argmin(np.abs(g.times - t)))
         if abs(g.times[f] - t) > 0.5 / g.fps + 1e-9:
             continue
-        recon.append(gaussian_density(*(st[k].cpu().numpy() for k in ("means", "scales", "quats")),
-                                      st["opacities"].reshape(-1).cpu().numpy(), centres))
+        recon.append(gaussian_cell_mean(*(st[k].cpu().numpy() for k in ("means", "scales", "quats")),
+                                        st["opacities"].reshape(-1).cpu().numpy(), g.domain_min, g.cell,
+                                        g.density.shape[1:]))
         truth.append(g.density[f].reshape(-1))
         used.append(float(t))
     if not used:
@@ -76,7 +74,7 @@ def _density_vs_grid(path: Path, times, states, log) -> dict:
     res = density_agreement(recon, truth)
     for row, t in zip(res["per_frame"], used):
         row["time"] = t
-    res.update(gt=str(path), grid=list(g.density.shape[1:]))
+    res.update(gt=str(path), grid=list(g.density.shape[1:]), sampling="cell means")
     scored = sum(r["corr"] is not None for r in res["per_frame"])
     if scored:
         log(f"density vs the true grid ({'x'.join(map(str, g.density.shape[1:]))} cells, {scored} frames with "

@@ -29,3 +29,21 @@ def test_smoke_shades_what_lies_below_it():
     d[:, :, 6:] = 1.0
     t = light_transmittance(__import__("torch").as_tensor(d), 0.01, 60.0).numpy()
     assert np.all(np.diff(t[1, 1], axis=0) >= 0) and t[1, 1, 0] < 0.2 and t[1, 1, 9] > 0.7
+
+
+def test_held_out_cameras_sit_between_the_training_ones():
+    from gf_core.formats.hdf5 import GridData
+    from gf_core.render.volume import volume_rig
+
+    g = GridData(density=np.zeros((1, 4, 4, 4), np.float32), times=np.zeros(1), domain_min=(-0.2, -0.2, 0.0),
+                 domain_max=(0.2, 0.2, 0.6), fps=30.0)
+    for views, tests in ((5, 1), (5, 4), (3, 2), (4, 1)):
+        train, test = volume_rig(g, views=views, test_views=tests, resolution=32, fov_deg=40.0, arc_deg=90.0,
+                                 elevation_deg=25.0, test_elevation_deg=None)
+        azimuth = lambda c: np.degrees(np.arctan2(c.center[0], -c.center[1]))  # noqa: E731  (0 = front)
+        a_train = sorted(azimuth(c) for c in train)
+        assert np.allclose(a_train, np.linspace(-45, 45, views), atol=1e-6)
+        step = 90.0 / (views - 1)
+        for k, c in enumerate(test):  # halfway between training cameras k and k + 1, none on a training one
+            assert abs(azimuth(c) - (-45 + step * (k + 0.5))) < 1e-6
+            assert min(np.linalg.norm(c.center - t.center) for t in train) > 0.1
