@@ -167,8 +167,12 @@ def gaussian_cell_mean(means, scales, quats, opacities, domain_min, cell, shape,
         idx = idx.reshape(len(p), k)
         d, sg = p[:, None, :] - mu[idx], sigma[idx]
         box = ndtr((d + c / 2) / sg) - ndtr((d - c / 2) / sg)            # (chunk, k, 3): each axis' share
-        rot = norm[idx] * np.exp(-0.5 * np.einsum("mki,mkij,mkj->mk", d, A[idx], d))
-        out[a:a + 16384] = (amp[idx] * box.prod(-1) * rot).sum(-1)
+        # in logs: far from a Gaussian the box's share underflows to 0 while the ratio (A is
+        # indefinite) may overflow; the ratio is capped at e^30 and a zero share stays zero
+        with np.errstate(divide="ignore"):
+            log_box = np.log(box.prod(-1))
+        log_rot = np.minimum(np.log(norm[idx]) - 0.5 * np.einsum("mki,mkij,mkj->mk", d, A[idx], d), 30.0)
+        out[a:a + 16384] = (amp[idx] * np.exp(log_box + log_rot)).sum(-1)
     return out.reshape(shape)
 
 
@@ -180,6 +184,8 @@ def density_agreement(recon: list[np.ndarray], truth: list[np.ndarray]) -> dict:
     scored."""
     a = np.concatenate([np.ravel(r) for r in recon])
     b = np.concatenate([np.ravel(t) for t in truth])
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise ValueError("density_agreement: a density field holds NaN or infinite values")
     scale = float(a @ b / max(a @ a, 1e-300))
     rows = []
     for r, t in zip(recon, truth):
