@@ -307,6 +307,8 @@ def run_reconstruct(args) -> int:
         cols += [("test_psnr", "held-out PSNR", ".2f"), ("test_ssim", "SSIM", ".3f")]
     if "chamfer" in recs[0]:
         cols += [("gt_to_recon", "true->recon", ".3f"), ("recon_to_gt", "recon->true", ".3f")]
+    if "density_corr" in recs[0]:
+        cols += [("density_corr", "density corr", ".3f")]
     cols += [("density_std", "density std", ".3f")]
     print()
     print(table(recs, cols))

@@ -86,6 +86,9 @@ def bench_reconstruct(dataset: Path, out: Path, *, iterations: list[int], partic
                     pv = ev["particles_vs_gt"]
                     rec.update(gt_to_recon=pv["gt_to_recon_mean"], recon_to_gt=pv["recon_to_gt_mean"],
                                chamfer=0.5 * (pv["gt_to_recon_mean"] + pv["recon_to_gt_mean"]))
+                if ev.get("density_vs_gt", {}).get("corr_mean") is not None:   # a smoke dataset's true grid
+                    rec.update(density_corr=ev["density_vs_gt"]["corr_mean"],
+                               density_corr_min_frame=ev["density_vs_gt"]["corr_min_frame"])
                 curve = read_metrics(run / "metrics.jsonl")
                 rec["trace"] = [{"wall_s": c["wall_s"], "test_psnr": c["test_psnr"]} for c in curve if "test_psnr" in c]
                 if t is not None:

@@ -64,8 +64,8 @@ def _density_vs_grid(path: Path, times, states, log) -> dict:
         f = int(np.argmin(np.abs(g.times - t)))
         if abs(g.times[f] - t) > 0.5 / g.fps + 1e-9:
             continue
-        recon.append(gaussian_cell_mean(*(st[k].cpu().numpy() for k in ("means", "scales", "quats")),
-                                        st["opacities"].reshape(-1).cpu().numpy(), g.domain_min, g.cell,
+        recon.append(gaussian_cell_mean(*(st[k].detach().cpu().numpy() for k in ("means", "scales", "quats")),
+                                        st["opacities"].detach().reshape(-1).cpu().numpy(), g.domain_min, g.cell,
                                         g.density.shape[1:]))
         truth.append(g.density[f].reshape(-1))
         used.append(float(t))

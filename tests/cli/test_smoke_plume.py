@@ -37,3 +37,11 @@ def test_plume_simulate_render_reconstruct_evaluate(tmp_path):
     assert all(math.isfinite(r["corr"]) and -1 <= r["corr"] <= 1 and r["error"] >= 0 for r in dv["per_frame"])
     assert math.isfinite(dv["corr_mean"]) and math.isfinite(dv["error_mean"])
     assert dv["grid"] == list(g.density.shape[1:])
+    # the per-frame reference on the same dataset (static fits: their parameters carry gradients)
+    bench = tmp_path / "per_frame"
+    assert main(["bench", "reconstruct", str(ds), "--per-frame", "--frames", "1:3", "--preset", "smoke",
+                 "--config", str(cfg), "--grayscale", "--iterations", "20", "--particles", "200",
+                 "--out", str(bench)]) == 0
+    rows = json.loads((bench / "bench_reconstruct.json").read_text())["records"]
+    assert [round(r["time"], 3) for r in rows] == [0.4, 0.6]
+    assert all(-1 <= r["density_corr"] <= 1 and r["density_corr_min_frame"] == r["density_corr"] for r in rows)
