@@ -1,12 +1,13 @@
-"""Images of a density grid (``GridData``): emission-absorption ray marching, evenly lit (optionally
-with a light from above as well), grayscale on black (the look of ScalarFlow's background-free footage); the rig of a smoke
-dataset (``gf_core.data.writers.write_smoke_dataset`` writes one).
+"""Images of a density grid (``GridData``): emission-absorption ray marching, evenly lit
+(optionally with a light from above as well), grayscale on black (the look of ScalarFlow's
+background-free footage); the rig of a smoke dataset (``gf_core.data.writers.write_smoke_dataset``
+writes one).
 
 Along each camera ray through the grid's box, with extinction sigma = ``extinction`` x density,
 the image is sum_i T_i (1 - exp(-sigma_i ds)) (ambient + L_i), where T_i is the transmittance from
 the camera to sample i and L_i the light reaching it from above (``light`` x the transmittance
-along +z to the top of the box, so dense smoke shades what lies below it; 0 by default). Vectorised over all
-pixels and samples (torch ``grid_sample``).
+along +z to the top of the box, so dense smoke shades what lies below it; 0 by default).
+Vectorised over all pixels and samples (torch ``grid_sample``).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ def render_density(density: np.ndarray, lo, hi, cam: Camera, *, extinction: floa
     """The (H, W) float32 image in [0, 1] of one frame's density (nx, ny, nz) in the box [lo, hi].
 
     The default lighting is uniform (``ambient`` only): the image is then a function of the density
-    alone, as in the line-integral image model of ScalarFlow's evenly lit captures. With ``light`` >
+    alone, as for an evenly lit capture. With ``light`` >
     0, smoke is lit from above as well and shades what lies below it; its brightness then varies
     with the light, which images alone cannot tell apart from a change of density."""
     d = torch.as_tensor(np.asarray(density, np.float32))
