@@ -37,6 +37,8 @@ class ModelConfig:
     floor: list = field(default_factory=list)      # [z]: the floor's height alone (metres); empty: unknown
     floor_estimate: str = "silhouettes"  # without a known floor: "silhouettes" (recon/initial.py) | "none"
     wall_inset: float = 0.5        # particle centres stay this many particle spacings inside the scene box
+    wall_gradient: str = "none"    # none | inward: the images' gradient reaches a coordinate held at a wall
+                                   # when it points back inside (recon/model.py)
 
 
 _LOSS_CLASSES: dict = {}
@@ -159,6 +161,8 @@ class ReconConfig:
             raise InputError(where, f"model.floor must be [] or [z] with one finite height in metres, got {m.floor!r}")
         if m.floor and m.scene_box:
             raise InputError(where, "model.floor and model.scene_box exclude each other (the box's lowest z is its floor)")
+        if m.wall_gradient not in ("none", "inward"):
+            raise InputError(where, f"model.wall_gradient must be none or inward, got {m.wall_gradient!r}")
         if not 0 <= m.wall_inset <= 2:
             raise InputError(where, f"model.wall_inset must be in [0, 2] particle spacings, got {m.wall_inset}")
         if lo.background not in ("random", "black", "white", "dataset"):

@@ -62,6 +62,28 @@ class Bounds:
                    float(inset))
 
 
+class _WallClamp(torch.autograd.Function):
+    """Positions clamped into [lo, hi] whose gradient still reaches a coordinate held at a wall
+    when the descent step would move it back inside. A hard clamp's gradient is 0 there: a particle
+    that the decoder pushed through the floor at some frame no longer feels the images at that frame
+    along that axis and stays flattened on the floor however high the fluid in the images is."""
+
+    @staticmethod
+    def forward(ctx, x, lo, hi):
+        ctx.save_for_backward(x, lo, hi)
+        return torch.maximum(torch.minimum(x, hi), lo)
+
+    @staticmethod
+    def backward(ctx, g):
+        x, lo, hi = ctx.saved_tensors
+        # descent moves x by -g: below lo it must rise (g < 0), above hi fall (g > 0)
+        keep = ((x >= lo) | (g < 0)) & ((x <= hi) | (g > 0))
+        return torch.where(keep, g, torch.zeros_like(g)), None, None
+
+
+WALL_GRADIENTS = ("none", "inward")
+
+
 class FluidModel(nn.Module):
     """Canonical particles as ``nn.Parameter``s (one per name in ``PER_PARTICLE``) + optional decoder."""
 
@@ -80,6 +102,7 @@ class FluidModel(nn.Module):
         clo, chi = bounds.centre_box()
         self._lo = torch.tensor(clo, dtype=means.dtype, device=means.device)
         self._hi = torch.tensor(chi, dtype=means.dtype, device=means.device)
+        self.wall_gradient = "none"  # model.wall_gradient: "inward" lets the images pull a particle off a wall
 
     # ---- construction ----------------------------------------------------------------------------
     @classmethod
@@ -141,7 +164,10 @@ class FluidModel(nn.Module):
         return torch.cat([self.sh_dc, self.sh_rest], 1)
 
     def _bounded(self, means, log_scales):
-        means = torch.maximum(torch.minimum(means, self._hi), self._lo)
+        if self.wall_gradient == "inward" and torch.is_grad_enabled() and means.requires_grad:
+            means = _WallClamp.apply(means, self._lo, self._hi)
+        else:
+            means = torch.maximum(torch.minimum(means, self._hi), self._lo)
         log_scales = log_scales.clamp(self.bounds.log_scale_min, self.bounds.log_scale_max)
         return means, log_scales
 

@@ -78,6 +78,8 @@ class Trainer:
 
     @model.setter
     def model(self, m):
+        if m is not None:
+            m.wall_gradient = self.cfg.model.wall_gradient
         self.ctx.model = m
 
     def knots(self) -> list[float] | None:

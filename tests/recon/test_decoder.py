@@ -236,3 +236,32 @@ def test_old_files_without_an_interpolation_keep_linear_residuals(tmp_path):
         NumpyDecoder(data)
     with pytest.raises(InputError, match="residual_interpolation must be one of"):
         DecoderConfig(residual_interpolation="cubic").validate()
+
+
+def test_wall_gradient_reaches_a_held_coordinate_only_back_inside():
+    """model.wall_gradient = "inward": a decoded position held at a face of the box still gets the
+    gradient that would move it back inside, not one that pushes it further out; "none" gets none."""
+    from gf_core.recon.decoder import TimeMap
+    from gf_core.recon.model import Bounds, FluidModel
+
+    means = torch.tensor([[0.0, 0.0, -0.05], [0.0, 0.0, -0.05], [0.0, 0.0, 0.0]])  # two below the floor, one inside
+    n = means.shape[0]
+
+    def grad_z(mode, pull):
+        model = FluidModel(means.clone(), torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                           torch.zeros(n), torch.full((n, 1, 3), 0.5),
+                           bounds=Bounds.for_box([-0.02] * 3, [0.02] * 3, 0.01, 0.0), time_map=TimeMap(0.0, 1.0))
+        model.wall_gradient = mode
+        z = model.at(None)["means"][:, 2]
+        assert torch.allclose(z, torch.tensor([-0.02, -0.02, 0.0]))  # the forward clamp is the same either way
+        (z * torch.as_tensor(pull)).sum().backward()  # the loss falls as z rises where pull < 0
+        return model.means.grad[:, 2]
+
+    pull = [-1.0, 1.0, 1.0]  # the first held particle is wanted higher, the second lower
+    assert torch.equal(grad_z("inward", pull), torch.tensor([-1.0, 0.0, 1.0]))
+    assert torch.equal(grad_z("none", pull), torch.tensor([0.0, 0.0, 1.0]))
+    with pytest.raises(InputError, match="wall_gradient"):
+        from gf_core.recon.config import make_config
+        cfg = make_config("water")
+        cfg.model.wall_gradient = "outward"
+        cfg.validate()
