@@ -313,6 +313,32 @@ def test_residual_change_term_is_zero_for_equal_residuals_and_reaches_only_its_f
     assert tr.model.decoder.features.grad is None
 
 
+def test_gravity_term_lowers_every_particle_through_its_frames_residual_only(blob, tmp_path):
+    """terms.gravity: the mean height above the floor in spacings, through the drawn frame's position
+    residual alone, along z alone; nothing reaches the canonical particles, theta, Phi or other frames."""
+    from gf_core.recon.terms.gravity import GRAVITY
+
+    tr = Trainer(small_config(loss={"gravity": 1.0}, decoder={"residuals": True}), load_dataset(blob),
+                 out=tmp_path / "run", log=quiet)
+    tr.initialise()
+    dec = tr.model.decoder
+    t = float(tr.views.unique_times[2])
+    means = tr.model.at(t)["means"]
+    v = term_at(tr, GRAVITY, t, means)
+    want = ((means[:, 2] - tr.model.bounds.lo[2]) / tr.ctx.spacing).mean()
+    assert torch.allclose(v.detach(), want.detach()) and float(v.detach()) > 0
+    tr.model.zero_grad()
+    v.backward()
+    r = dec.residual_dp
+    k = int(np.argmin(np.abs(dec.knots.numpy() - tr.time_map.tau(t))))
+    g = r.grad[:, k]
+    assert torch.allclose(g[:, 2], torch.full_like(g[:, 2], 1.0 / (len(means) * tr.ctx.spacing)))
+    assert float(g[:, :2].abs().sum()) == 0.0
+    assert float(torch.cat([r.grad[:, :k], r.grad[:, k + 1:]], 1).abs().sum()) == 0.0
+    for q in [tr.model.means, dec.features, *dec.mlp_parameters()]:
+        assert q.grad is None or float(q.grad.abs().sum()) == 0.0
+
+
 def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
     """A term whose weights are 0 is never evaluated (neither its per-frame nor its per-step part,
     nor what it draws), and lambda_d = 0 means no neighbour search at all."""
@@ -331,7 +357,7 @@ def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
     reconstruct(load_dataset(blob), tmp_path / "z", cfg, log=quiet)
     zero = {t.name for t in TERMS if all(getattr(cfg.loss, k) == 0 for k in t.keys())}
     assert zero == {"density", "volume", "floor", "settle", "motion", "smooth", "opacity", "coherence",
-                    "incompressible"}
+                    "incompressible", "gravity"}
     assert not zero & set(called) and "knn" not in called
     assert {"image", "hull", "aniso", "color", "residual_motion"} <= set(called)  # the others ran
 

@@ -4,7 +4,7 @@ loss sums them. A term is a module of this package (its equation as a function, 
 plus its line here; its weight is a key of the presets (``[loss]``), which ``config.LossConfig``
 takes from this list. Weights of 0 compute nothing.
 
-Per decoded time (the mean over the step's times): settle, density, floor, smooth,
+Per decoded time (the mean over the step's times): settle, gravity, density, floor, smooth,
 residual_motion, coherence, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
 the step's images), hull (all its masked images), motion, incompressible (across its times)."""
 
@@ -16,6 +16,7 @@ from .coherence import COHERENCE
 from .color import COLOR
 from .density import DENSITY
 from .floor import FLOOR
+from .gravity import GRAVITY
 from .hull import HULL
 from .image import IMAGE
 from .incompressible import INCOMPRESSIBLE
@@ -30,6 +31,7 @@ TERMS: tuple[Term, ...] = (
     IMAGE,
     HULL,
     SETTLE,
+    GRAVITY,
     DENSITY,
     FLOOR,
     SMOOTH,

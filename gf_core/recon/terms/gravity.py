@@ -1,0 +1,25 @@
+"""Gravity (not in the paper): the potential energy of every particle, its height above the floor in
+particle spacings (mean over all particles), through each frame's position residual only. The images
+place the opaque particles; the rest of a liquid sits where the views cannot see into it, and of all
+the ways to fill the views' hull with one volume of fluid (``incompressible``) a liquid takes the
+lowest. Needs the floor (gravity along -z); no pull reaches the canonical particles or the decoder."""
+
+from __future__ import annotations
+
+import torch
+
+from .base import Term
+from .settle import settling
+
+
+class GravityTerm(Term):
+    def frame(self, ctx, f, w):
+        means = f.means
+        tau = torch.full((1,), ctx.time_map.tau(f.t), dtype=means.dtype, device=ctx.device)
+        r = ctx.model.decoder.residual_at(tau, "dp")[0][0]
+        pos = means.detach() + (r - r.detach())
+        everyone = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+        return w["gravity"] * settling(pos, everyone, float(ctx.model.bounds.lo[2]), ctx.spacing)
+
+
+GRAVITY = GravityTerm("gravity", (("gravity", 0.0),), phases="residuals", needs=("decoder", "residuals", "floor"))
