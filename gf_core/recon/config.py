@@ -21,6 +21,7 @@ from . import terms
 
 PRESET_DIR = Path(__file__).parent / "presets"
 PRESETS = ("water", "honey", "smoke")
+WALL_GRADIENTS = ("none", "inward")  # model.wall_gradient (recon/model.py: FluidModel._bounded)
 
 
 @dataclass
@@ -161,7 +162,7 @@ class ReconConfig:
             raise InputError(where, f"model.floor must be [] or [z] with one finite height in metres, got {m.floor!r}")
         if m.floor and m.scene_box:
             raise InputError(where, "model.floor and model.scene_box exclude each other (the box's lowest z is its floor)")
-        if m.wall_gradient not in ("none", "inward"):
+        if m.wall_gradient not in WALL_GRADIENTS:
             raise InputError(where, f"model.wall_gradient must be none or inward, got {m.wall_gradient!r}")
         if not 0 <= m.wall_inset <= 2:
             raise InputError(where, f"model.wall_inset must be in [0, 2] particle spacings, got {m.wall_inset}")

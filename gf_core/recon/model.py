@@ -81,8 +81,6 @@ class _WallClamp(torch.autograd.Function):
         return torch.where(keep, g, torch.zeros_like(g)), None, None
 
 
-WALL_GRADIENTS = ("none", "inward")
-
 
 class FluidModel(nn.Module):
     """Canonical particles as ``nn.Parameter``s (one per name in ``PER_PARTICLE``) + optional decoder."""

@@ -9,16 +9,13 @@ from __future__ import annotations
 import torch
 
 from .base import Term
-from .settle import settling
+from .settle import settling, through_residual
 
 
 class GravityTerm(Term):
     def frame(self, ctx, f, w):
-        means = f.means
-        tau = torch.full((1,), ctx.time_map.tau(f.t), dtype=means.dtype, device=ctx.device)
-        r = ctx.model.decoder.residual_at(tau, "dp")[0][0]
-        pos = means.detach() + (r - r.detach())
-        everyone = torch.ones(means.shape[0], dtype=torch.bool, device=means.device)
+        pos = through_residual(ctx, f)
+        everyone = torch.ones(pos.shape[0], dtype=torch.bool, device=pos.device)
         return w["gravity"] * settling(pos, everyone, float(ctx.model.bounds.lo[2]), ctx.spacing)
 
 

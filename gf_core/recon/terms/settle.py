@@ -26,6 +26,15 @@ def unsupported(positions: torch.Tensor, idx: torch.Tensor, spacing: float, floo
     return ~below.any(1) & (z > floor + spacing)
 
 
+def through_residual(ctx, f) -> torch.Tensor:
+    """The frame's decoded positions (N, 3) with a gradient that reaches its position residual only
+    (the residual's value is already in them): a pull on these moves no canonical particle, no
+    decoder weight and no other frame."""
+    tau = torch.full((1,), ctx.time_map.tau(f.t), dtype=f.means.dtype, device=ctx.device)
+    r = ctx.model.decoder.residual_at(tau, "dp")[0][0]
+    return f.means.detach() + (r - r.detach())
+
+
 def settling(positions: torch.Tensor, gate: torch.Tensor, floor: float, spacing: float) -> torch.Tensor:
     """Potential energy of the ``gate``d particles (N,) bool, their height above ``floor`` in
     particle spacings summed over them and divided by all N (gravity along -z)."""
@@ -44,9 +53,7 @@ class SettleTerm(Term):
         if ent is None:
             return w["settle"] * (means.sum() * 0.0)
         wet = ent[2]
-        tau = torch.full((1,), ctx.time_map.tau(f.t), dtype=means.dtype, device=ctx.device)
-        r = ctx.model.decoder.residual_at(tau, "dp")[0][0]
-        pos = means.detach() + (r - r.detach())
+        pos = through_residual(ctx, f)
         lo = ctx.model.bounds.lo
         with torch.no_grad():
             q = torch.floor((means[:, :2].detach() - torch.as_tensor(lo[:2], dtype=means.dtype, device=ctx.device))
