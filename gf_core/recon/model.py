@@ -196,6 +196,8 @@ class FluidModel(nn.Module):
             means, log_scales = self._bounded(r["means"], r["log_scales"])
             p = {"means": means, "scales": torch.exp(log_scales), "quats": r["quats"],
                  "opacities": op_k, "sh": sh_k}
+            if delta is not None:  # the decoded positions before the box holds them (loss.container)
+                p["unclamped"] = r["means"]
             if with_velocity:  # the clamp's derivative: a coordinate held at a wall does not move
                 p["velocities"] = torch.zeros_like(means) if vel is None else torch.where(means == r["means"], vel, 0.0)
             out.append(p)

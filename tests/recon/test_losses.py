@@ -339,6 +339,46 @@ def test_gravity_term_lowers_every_particle_through_its_frames_residual_only(blo
         assert q.grad is None or float(q.grad.abs().sum()) == 0.0
 
 
+def test_container_term_pulls_decoded_positions_back_to_the_wall_they_crossed(blob, tmp_path):
+    """terms.container: the mean L1 distance beyond the scene box of the positions the decoder gives
+    before the clamp, in spacings; its gradient reaches the decoder and points back inside, and a
+    particle inside the box gets none."""
+    from gf_core.recon.terms.container import CONTAINER, beyond_box
+
+    tr = Trainer(small_config(loss={"container": 1.0}, decoder={"residuals": True}), load_dataset(blob),
+                 out=tmp_path / "run", log=quiet)
+    tr.initialise()
+    tr.phase = 2
+    lo, hi, sp = tr.model._lo, tr.model._hi, tr.ctx.spacing
+    t = float(tr.views.unique_times[2])
+    p = tr.model.at(t)
+    raw = p["unclamped"]
+    assert torch.equal(p["means"], torch.maximum(torch.minimum(raw, hi), lo))
+    moved = raw.detach().clone()
+    moved[0, 2] = lo[2] - 3 * sp          # 3 spacings below the floor
+    moved[1, 0] = hi[0] + 2 * sp          # 2 beyond a side wall
+    moved[2] = (lo + hi) / 2              # inside
+    moved.requires_grad_(True)
+    f = Frame(tr.ctx, t, t, {"means": p["means"], "unclamped": moved}, [])
+    v = CONTAINER.frame(tr.ctx, f, {"container": 1.0})
+    inside = ((moved.detach() >= lo) & (moved.detach() <= hi)).all(1)
+    want = (5.0 + float(beyond_box(moved.detach()[3:], lo, hi, sp)) * (len(moved) - 3)) / len(moved)
+    assert float(v.detach()) == pytest.approx(want, rel=1e-5)
+    v.backward()
+    g = moved.grad
+    assert float(g[0, 2]) < 0 and float(g[1, 0]) > 0          # descent lifts one and pulls the other in
+    assert float(g[inside].abs().sum()) == 0.0
+    # through the decoder: the term on the decoded frame reaches theta and Phi
+    tr.model.zero_grad()
+    dec = tr.model.decoder
+    with torch.no_grad():
+        dec.residual_dp[:, :, 2] -= 1.0   # every frame's decoded fluid far below the floor
+    f = Frame(tr.ctx, t, t, tr.model.at(t), [])
+    CONTAINER.frame(tr.ctx, f, {"container": 1.0}).backward()
+    assert sum(float(q.grad.abs().sum()) for q in dec.mlp_parameters() if q.grad is not None) > 0
+    assert float(dec.residual_dp.grad[..., 2].sum()) < 0
+
+
 def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
     """A term whose weights are 0 is never evaluated (neither its per-frame nor its per-step part,
     nor what it draws), and lambda_d = 0 means no neighbour search at all."""
@@ -357,7 +397,7 @@ def test_zero_weights_compute_nothing(blob, tmp_path, monkeypatch):
     reconstruct(load_dataset(blob), tmp_path / "z", cfg, log=quiet)
     zero = {t.name for t in TERMS if all(getattr(cfg.loss, k) == 0 for k in t.keys())}
     assert zero == {"density", "volume", "floor", "settle", "motion", "smooth", "opacity", "coherence",
-                    "incompressible", "gravity"}
+                    "incompressible", "gravity", "container"}
     assert not zero & set(called) and "knn" not in called
     assert {"image", "hull", "aniso", "color", "residual_motion"} <= set(called)  # the others ran
 

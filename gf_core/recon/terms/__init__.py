@@ -4,7 +4,7 @@ loss sums them. A term is a module of this package (its equation as a function, 
 plus its line here; its weight is a key of the presets (``[loss]``), which ``config.LossConfig``
 takes from this list. Weights of 0 compute nothing.
 
-Per decoded time (the mean over the step's times): settle, gravity, density, floor, smooth,
+Per decoded time (the mean over the step's times): settle, gravity, container, density, floor, smooth,
 residual_motion, coherence, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
 the step's images), hull (all its masked images), motion, incompressible (across its times)."""
 
@@ -14,6 +14,7 @@ from .aniso import ANISO
 from .base import NEEDS, PHASES, RAMPS, Term
 from .coherence import COHERENCE
 from .color import COLOR
+from .container import CONTAINER
 from .density import DENSITY
 from .floor import FLOOR
 from .gravity import GRAVITY
@@ -32,6 +33,7 @@ TERMS: tuple[Term, ...] = (
     HULL,
     SETTLE,
     GRAVITY,
+    CONTAINER,
     DENSITY,
     FLOOR,
     SMOOTH,
