@@ -144,7 +144,7 @@ def scene_record(name: str, spec: dict, ev: dict, pf: dict | None, targets: dict
         rec.update(particles_true=rows[0]["particles_gt"], gt_to_recon_mean=pv["gt_to_recon_mean"],
                    recon_to_gt_mean=pv["recon_to_gt_mean"], gt_to_recon_max=pv["gt_to_recon_max_frame"],
                    recon_to_gt_max=pv["recon_to_gt_max_frame"], coverage=pv["gt_within_1_mean"],
-                   outside_max=pv["outside_container_max_frame"])
+                   outside_max=pv["outside_container_max_frame"], flow_following=pv.get("flow_following_mean"))
         series.update(chamfer_time=[r["time"] for r in rows], gt_to_recon=[r["gt_to_recon"] for r in rows],
                       recon_to_gt=[r["recon_to_gt"] for r in rows])
     en = ev.get("energy", {}).get("per_frame", [])
@@ -242,7 +242,8 @@ COLUMNS = [("scene", "scene", "s"), ("seed", "seed", "d"), ("particles_true", "N
            ("gt_to_recon_mean", "t->r", ".2f"), ("gt_to_recon_max", "t->r max", ".2f"),
            ("recon_to_gt_mean", "r->t", ".2f"), ("recon_to_gt_max", "r->t max", ".2f"),
            ("coverage", "covered", ".2f"), ("outside_max", "outside", ".3f"),
-           ("kinetic_factor_max", "KE factor", ".2f"), ("energy_rise_max", "E rise", "+.2f"), ("missed", "missed", "s")]
+           ("kinetic_factor_max", "KE factor", ".2f"), ("flow_following", "flow", ".2f"),
+           ("energy_rise_max", "E rise", "+.2f"), ("missed", "missed", "s")]
 
 
 def table_rows(records: list[dict]) -> list[dict]:

@@ -16,7 +16,8 @@ from ..formats.hdf5 import atomic_write_text, read_recon, read_sim
 from ..recon.model import FluidModel
 from ..recon.views import composited
 from ..render import render
-from .metrics import density_spread, image_metrics, mechanical_energy, particle_error, shape_spread, transport_distance
+from .metrics import density_spread, flow_error, image_metrics, mechanical_energy, particle_error, shape_spread, \
+    transport_distance
 
 
 def _render_split(model: FluidModel, ds, device) -> list[dict]:
@@ -155,7 +156,8 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
             outside = float(np.any((p < np.asarray(sim.domain_min)) | (p > np.asarray(sim.domain_max)), 1).mean()) \
                 if len(p) else 0.0
             rows.append({"time": float(t), "gt_frame": f, **particle_error(p, sim.positions[f], spacing),
-                         **transport_distance(p, sim.positions[f], spacing), "outside_container": outside})
+                         **transport_distance(p, sim.positions[f], spacing), "outside_container": outside,
+                         **flow_error(p, st["velocities"].cpu().numpy(), sim.positions[f], sim.velocities[f])})
         if rows:
             result["particles_vs_gt"] = {
                 "gt": str(gt_file), "spacing": spacing, "per_frame": rows,
@@ -166,6 +168,9 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
                 "gt_within_1_mean": float(np.mean([x["gt_to_recon_within_1"] for x in rows])),
                 "outside_container_max_frame": float(max(x["outside_container"] for x in rows)),
                 "emd_mean": float(np.mean([x["emd"] for x in rows])),
+                # the flow at the reconstructed particles, over the frames where the true fluid moves
+                # (root mean square speed there above 10 % of the clip's largest)
+                **_flow_summary(rows),
                 "emd_solver": "exact assignment (scipy linear_sum_assignment) of equal random subsamples of "
                               f"at most {rows[0]['emd_samples']} particles",
                 # what subsampling alone gives: two disjoint random halves of the true particles
@@ -176,6 +181,10 @@ def evaluate(run: Path, *, dataset=None, test_dataset=None, gt_path=None, device
                 f"{pv['recon_to_gt_max_frame']:.3f}); {100 * pv['gt_within_1_mean']:.1f}% of true particles covered; "
                 f"at most {100 * pv['outside_container_max_frame']:.1f}% of the particles outside the true container; "
                 f"earth mover's distance {pv['emd_mean']:.3f} spacings (subsampling floor {pv['emd_floor']:.3f})")
+            if math.isfinite(pv["flow_following_mean"]):
+                log(f"flow at the reconstructed particles (the nearest true particle's velocity): they follow "
+                    f"{pv['flow_following_mean']:.2f} of it (worst frame {pv['flow_following_min_frame']:.2f}; 1 = "
+                    f"with the flow, 0 = standing still), mean velocity error {pv['velocity_error_mean']:.3f} m/s")
     if dataset is not None and dataset.meta.get("gt_density"):
         result["density_vs_gt"] = _density_vs_grid(Path(dataset.meta["gt_density"]), times, states, log)
     result["training"] = r.metrics
@@ -323,6 +332,18 @@ def particle_stats(r) -> dict:
         out[name] = {"mean": float(a.mean()), "median": float(np.median(a)), "p10": float(np.percentile(a, 10)),
                      "p90": float(np.percentile(a, 90))}
     return out
+
+
+def _flow_summary(rows: list[dict]) -> dict:
+    """Means of ``metrics.flow_error`` over the frames whose true flow at the particles is faster
+    than a tenth of the clip's fastest (a fluid at rest has no flow to follow)."""
+    fast = max((x["true_speed"] for x in rows if math.isfinite(x["true_speed"])), default=0.0)
+    moving = [x for x in rows if math.isfinite(x["true_speed"]) and x["true_speed"] > 0.1 * fast > 0]
+    if not moving:
+        return {"flow_following_mean": math.nan, "flow_following_min_frame": math.nan, "velocity_error_mean": math.nan}
+    return {"flow_following_mean": float(np.mean([x["flow_following"] for x in moving])),
+            "flow_following_min_frame": float(min(x["flow_following"] for x in moving)),
+            "velocity_error_mean": float(np.mean([x["velocity_error"] for x in moving]))}
 
 
 def energies(model: FluidModel, r, times, states, sim, rest_density: float | None) -> dict:

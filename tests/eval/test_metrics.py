@@ -101,3 +101,29 @@ def test_density_agreement_scores_the_same_field_one_and_a_shuffled_one_near_zer
     assert abs(shuffled["corr_mean"]) < 0.15 and shuffled["error_mean"] > 0.3
     with_empty = density_agreement([truth[0], np.ones((8, 8, 8))] , [truth[0], np.zeros((8, 8, 8))])
     assert with_empty["per_frame"][1]["empty_truth"] and with_empty["corr_min_frame"] > 0.999999
+
+
+def test_flow_error_tells_particles_moving_with_the_flow_from_ones_standing_in_it():
+    """metrics.flow_error: the true flow at each reconstructed particle is its nearest true
+    particle's velocity. Reconstructed particles on a shear flow that move with it follow 1 of it
+    with no error; standing still they follow 0 with the flow's mean speed as error; moving twice
+    as fast, 2; empty sets give NaN, not an exception."""
+    from gf_core.eval.metrics import flow_error
+
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(0, 1, (2000, 3))
+    vel = np.stack([gt[:, 2], np.zeros(len(gt)), np.zeros(len(gt))], 1) * 2.0   # u = 2 z
+    rec = gt[rng.permutation(len(gt))[:500]] + rng.normal(0, 1e-4, (500, 3))
+    with_flow = flow_error(rec, with_flow_v(rec), gt, vel)
+    assert with_flow["flow_following"] == pytest.approx(1.0, abs=0.01)
+    assert with_flow["velocity_error"] < 0.02
+    still = flow_error(rec, np.zeros_like(rec), gt, vel)
+    assert still["flow_following"] == 0.0
+    assert still["velocity_error"] == pytest.approx(np.abs(2 * rec[:, 2]).mean(), rel=0.01)
+    assert still["true_speed"] == pytest.approx(np.sqrt(((2 * rec[:, 2]) ** 2).mean()), rel=0.01)
+    assert flow_error(rec, 2 * with_flow_v(rec), gt, vel)["flow_following"] == pytest.approx(2.0, abs=0.02)
+    assert np.isnan(flow_error(np.zeros((0, 3)), np.zeros((0, 3)), gt, vel)["flow_following"])
+
+
+def with_flow_v(x):
+    return np.stack([x[:, 2] * 2.0, 0 * x[:, 0], 0 * x[:, 0]], 1)
