@@ -174,8 +174,10 @@ class FluidModel(nn.Module):
         means, scales, quats, opacities, sh; with ``with_velocity`` also velocities (m/s)."""
         return self.at_many([t], with_velocity=with_velocity, use_decoder=use_decoder)[0]
 
-    def at_many(self, times, *, with_velocity: bool = False, use_decoder: bool = True) -> list[dict]:
-        """``at`` for several times, decoded in one pass through the MLP."""
+    def at_many(self, times, *, with_velocity: bool = False, use_decoder: bool = True,
+                with_unclamped: bool = False) -> list[dict]:
+        """``at`` for several times, decoded in one pass through the MLP; with ``with_unclamped``
+        also the decoded positions before the box holds them (``unclamped``, for loss.container)."""
         raw = {"means": self.means, "log_scales": self.log_scales, "quats": self.quats}
         decode = self.decoder is not None and use_decoder and all(t is not None for t in times)
         delta = None
@@ -196,7 +198,7 @@ class FluidModel(nn.Module):
             means, log_scales = self._bounded(r["means"], r["log_scales"])
             p = {"means": means, "scales": torch.exp(log_scales), "quats": r["quats"],
                  "opacities": op_k, "sh": sh_k}
-            if delta is not None:  # the decoded positions before the box holds them (loss.container)
+            if delta is not None and with_unclamped:
                 p["unclamped"] = r["means"]
             if with_velocity:  # the clamp's derivative: a coordinate held at a wall does not move
                 p["velocities"] = torch.zeros_like(means) if vel is None else torch.where(means == r["means"], vel, 0.0)

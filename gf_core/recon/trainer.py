@@ -134,7 +134,7 @@ class Trainer:
         bg = self.sampler.background()
         times = self.sampler.times(self.phase, schedule.window_width(cfg, self.phase, phase_progress))
         per_time = [(t, self.sampler.view_indices(t)) for t in times]
-        decoded = self.model.at_many([t for t, _ in per_time]) if use_dec else [self.model.at(None)] * len(per_time)
+        decoded = self.model.at_many([t for t, _ in per_time], with_unclamped=True) if use_dec else [self.model.at(None)] * len(per_time)
         values, frames, outs, shots = {}, [], [], {}
         for (t, idx), p in zip(per_time, decoded):
             f = Frame(ctx, float(t), float(t) if use_dec else "canonical", p, idx)

@@ -351,7 +351,8 @@ def test_container_term_pulls_decoded_positions_back_to_the_wall_they_crossed(bl
     tr.phase = 2
     lo, hi, sp = tr.model._lo, tr.model._hi, tr.ctx.spacing
     t = float(tr.views.unique_times[2])
-    p = tr.model.at(t)
+    p = tr.model.at_many([t], with_unclamped=True)[0]
+    assert "unclamped" not in tr.model.at(t)  # renderer inputs only
     raw = p["unclamped"]
     assert torch.equal(p["means"], torch.maximum(torch.minimum(raw, hi), lo))
     moved = raw.detach().clone()
@@ -373,7 +374,7 @@ def test_container_term_pulls_decoded_positions_back_to_the_wall_they_crossed(bl
     dec = tr.model.decoder
     with torch.no_grad():
         dec.residual_dp[:, :, 2] -= 1.0   # every frame's decoded fluid far below the floor
-    f = Frame(tr.ctx, t, t, tr.model.at(t), [])
+    f = Frame(tr.ctx, t, t, tr.model.at_many([t], with_unclamped=True)[0], [])
     CONTAINER.frame(tr.ctx, f, {"container": 1.0}).backward()
     assert sum(float(q.grad.abs().sum()) for q in dec.mlp_parameters() if q.grad is not None) > 0
     assert float(dec.residual_dp.grad[..., 2].sum()) < 0
