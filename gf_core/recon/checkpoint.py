@@ -15,7 +15,7 @@ from ..errors import GFError, InputError, ReconstructionError
 from ..formats.hdf5 import atomic_path
 from .config import from_dict
 from .decoder import Decoder
-from .model import Bounds, FluidModel
+from .model import FIXED, Bounds, FluidModel
 from .schedule import Plateau
 
 CHECKPOINT = "checkpoint.pt"
@@ -77,7 +77,7 @@ def capture(tr) -> dict:
             "spacing": tr.ctx.spacing, "h": tr.ctx.h, "volume": tr.volume, "box_source": tr.box_source,
             "init_source": tr.init_source, "bounds": m.bounds.to_dict(),
             "time_map": [tr.time_map.t_min, tr.time_map.t_max],
-            "params": {k: v.detach().cpu() for k, v in m.per_particle().items()},
+            "params": {k: v.detach().cpu() for k, v in {**m.per_particle(), **m.per_particle_fixed()}.items()},
             "mlp": None if m.decoder is None else {k: v.cpu() for k, v in m.decoder.layers.state_dict().items()},
             "optimizer": tr.opt.state_dict(), "plateau": tr.plateau.state(),
             "rng_torch": tr.gen.get_state(), "rng_numpy": json.dumps(tr.ctx.rng.bit_generator.state),
@@ -108,6 +108,9 @@ def restore(tr, st: dict, path: Path) -> None:
     tr.model = FluidModel(P["means"], P["log_scales"], P["quats"], P["logit_opacity"],
                             torch.cat([P["sh_dc"], P["sh_rest"]], 1), bounds=Bounds.from_dict(st["bounds"]),
                             time_map=tr.time_map, decoder=dec)
+    for name in FIXED:
+        if name in P:
+            tr.model.set_per_particle(name, P[name])
     tr.ctx.spacing, tr.ctx.h, tr.volume = st["spacing"], st["h"], st["volume"]
     tr.box_source, tr.init_source = st["box_source"], st["init_source"]
     tr.ctx.box_source = tr.box_source

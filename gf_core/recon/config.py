@@ -1,7 +1,8 @@
 """Configuration of ``gf-cli reconstruct``: nested dataclasses read from TOML presets
 (``gf_core/recon/presets/{water,honey,smoke}.toml``, every key documented there) and user files.
 ``[loss]`` holds a weight per key of the registered loss terms (``terms/``), ``[decoder]`` is the
-decoder's own config (``decoder.DecoderConfig``), ``[densify]`` the strategy's (``strategy.DensifyConfig``).
+decoder's own config (``decoder.DecoderConfig``), ``[densify]`` the strategy's (``strategy.DensifyConfig``), ``[guide]`` the simulated motion prior's
+(``guide.GuideConfig``).
 
 Precedence: built-in defaults < preset < ``--config FILE`` < command-line options. Unknown
 sections or keys, and values of the wrong type, are errors that name the file and the key.
@@ -16,6 +17,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..formats.toml_file import read_toml
 from .decoder import DecoderConfig
+from .guide import GuideConfig
 from .strategy import DensifyConfig
 from . import terms
 
@@ -128,6 +130,7 @@ class ReconConfig:
     lr: LRConfig = field(default_factory=LRConfig)
     phases: PhaseConfig = field(default_factory=PhaseConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    guide: GuideConfig = field(default_factory=GuideConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def to_dict(self) -> dict:
@@ -207,6 +210,10 @@ class ReconConfig:
             raise InputError(where, "train.log_every, eval_every and checkpoint_every must be >= 1")
         if self.train.mlp_precision not in ("auto", "float32", "bfloat16"):
             raise InputError(where, f"train.mlp_precision must be auto, float32 or bfloat16, got {self.train.mlp_precision!r}")
+        self.guide.validate(where)
+        if self.guide.solver != "none" and not self.decoder.residuals:
+            raise InputError(where, "guide.solver needs decoder.residuals = true (the simulation is followed through "
+                                    "the position residuals)")
         self.decoder.validate()
         return self
 
@@ -243,6 +250,7 @@ RANGES = {
     "densify.stop_fraction": (0.0, 1.0, False), "densify.grad_threshold": (0.0, 1e3, False),
     "densify.clone_max_scale": (0.0, 100.0, False), "densify.prune_opacity": (0.0, 1.0, False),
     "densify.prune_max_scale": (0.0, 1e3, True),
+    "guide.start": (0.0, 1.0, False), "guide.viscosity": (0.0, 1e3, False),
     "train.seed": (0, 2**63 - 1, False), "train.views_per_step": (0, 10**4, False),
     "train.times_per_step": (1, 10**4, False), "train.log_every": (1, 10**8, False),
     "train.eval_every": (1, 10**8, False), "train.eval_frames": (0, 10**6, False),

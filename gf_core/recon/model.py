@@ -24,6 +24,7 @@ from ..render.constants import SH_C0
 from .decoder import COLOR_OUTPUT, OPACITY_OUTPUT, RESIDUAL_PREFIX, Decoder, DecoderConfig, TimeMap, apply_delta
 
 PER_PARTICLE = ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest")
+FIXED = ("guide_dp",)  # per-particle, not optimised (FluidModel.fixed)
 
 
 @dataclass
@@ -101,6 +102,9 @@ class FluidModel(nn.Module):
         self._lo = torch.tensor(clo, dtype=means.dtype, device=means.device)
         self._hi = torch.tensor(chi, dtype=means.dtype, device=means.device)
         self.wall_gradient = "none"  # model.wall_gradient: "inward" lets the images pull a particle off a wall
+        # per-particle tensors that training keeps aligned with the particles but does not optimise:
+        # "guide_dp" (N, F, 3), the position residuals a simulator's continuation asks for (recon/guide.py)
+        self.fixed: dict[str, torch.Tensor] = {}
 
     # ---- construction ----------------------------------------------------------------------------
     @classmethod
@@ -148,7 +152,15 @@ class FluidModel(nn.Module):
             out.update(self.decoder.residuals())
         return out
 
+    def per_particle_fixed(self) -> dict[str, torch.Tensor]:
+        """The per-particle tensors that are not optimised (``fixed``); densify and prune cut and
+        grow them with the parameters, checkpoints keep them, recon.h5 does not."""
+        return dict(self.fixed)
+
     def set_per_particle(self, name: str, value: torch.Tensor) -> nn.Parameter:
+        if name in FIXED:
+            self.fixed[name] = value.detach().clone()
+            return self.fixed[name]
         if name.startswith(RESIDUAL_PREFIX):
             return self.decoder.set_residual(name, value)
         if name == "features":

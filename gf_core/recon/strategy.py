@@ -87,6 +87,11 @@ class ParticleOptimizer:
                     st[k] = m
                 self.opt.state[p] = st
             g["params"][0] = p
+        for name, old in self.model.per_particle_fixed().items():  # not optimised: rows only
+            value = old[keep]
+            if new:
+                value = torch.cat([value, new[name].to(old.dtype)], 0)
+            self.model.set_per_particle(name, value)
 
 
 @dataclass
@@ -174,7 +179,7 @@ class DensifyPrune:
         clone = cand & (max_s <= c.clone_max_scale * spacing)
         split = cand & ~clone
         new = {}
-        per = model.per_particle()
+        per = {**model.per_particle(), **model.per_particle_fixed()}
         if clone.any() or split.any():
             parts = {k: [] for k in per}
             if clone.any():

@@ -30,6 +30,7 @@ from . import checkpoint, schedule
 from .config import ReconConfig
 from .context import Context, Frame, Step
 from .decoder import TimeMap, mlp_low_precision
+from .guide import simulate_guide
 from .initial import start
 from .model import FluidModel
 from .result import result_config
@@ -239,9 +240,20 @@ class Trainer:
         self.phase_end_reasons.append({"phase": self.phase, "iteration": self.iteration, "wall_s": round(now, 3),
                                        "reason": reason})
 
+    def start_guide(self) -> None:
+        """``[guide]``: the position residuals start where a simulation from the decoded particles
+        carries them, and loss.residual_motion measures against that (recon/guide.py)."""
+        guide, report = simulate_guide(self.model, self.views.unique_times, self.cfg.guide, log=self.log)
+        with torch.no_grad():
+            self.model.decoder.residual_dp.copy_(guide)
+        self.model.set_per_particle("guide_dp", guide)
+        self.phase_end_reasons.append({"phase": self.phase, "iteration": self.iteration, "guide": report})
+
     def _next_phase(self, now: float, reason: str, t_start: float) -> None:
         self._end_phase(now, reason)
         self.phase, self.phase_it, self.phase_t0 = self.phase + 1, 0, now
+        if self.phase == self.cfg.phases.residuals_from and self.cfg.guide.solver != "none" and not self.static:
+            self.start_guide()
         self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
         self.strategy.reset(len(self.model), self.device)
         self.ctx.drop_neighbours()

@@ -3,7 +3,9 @@ fitted frame by frame, and the images cannot tell which particle is which inside
 without this term the particles may trade places from one frame to the next while every frame's
 image stays right; their velocities (and the kinetic energy, motion blur, predictions that use
 them) then measure that shuffle, not the flow. With a frozen decoder carrying the bulk motion,
-this penalises only the motion the residuals add."""
+this penalises only the motion the residuals add. With a simulated guide (``[guide]``,
+``recon/guide.py``) the residuals are measured from the guide's (``FluidModel.fixed["guide_dp"]``):
+the motion they add to the simulation's."""
 
 from __future__ import annotations
 
@@ -28,7 +30,11 @@ class ResidualMotionTerm(Term):
         j = ctx.frame_index(f.t)
         r = ctx.model.decoder.residual_dp
         nbrs = [k for k in (j - 1, j + 1) if 0 <= k < r.shape[1]]
-        return w["residual_motion"] * residual_change(r[:, j], r[:, nbrs], ctx.spacing)
+        here, there = r[:, j], r[:, nbrs]
+        g = ctx.model.fixed.get("guide_dp")
+        if g is not None:
+            here, there = here - g[:, j], there - g[:, nbrs]
+        return w["residual_motion"] * residual_change(here, there, ctx.spacing)
 
 
 RESIDUAL_MOTION = ResidualMotionTerm("residual_motion", (("residual_motion", 0.0),), phases="residuals",

@@ -1,0 +1,95 @@
+"""A simulator's continuation as the motion prior of the residual phase (not in the paper).
+
+Inside a uniform pool the images change only at the fluid's rim: they give the particles there no
+reason to move (the aperture problem of tracking), so a reconstruction of a splash stands still
+where the fluid flows, and its kinetic energy after an impact is a fraction of the truth's. A
+particle simulator carries that flow. At the start of the residual phase (``phases.residuals_from``)
+the decoded particles at the frame ``guide.start`` (a fraction of the clip) are simulated through
+the clip's later training frames (``downstream.predict.continue_state``: the rest state from the
+particles themselves, the scene box as the domain, velocities from the decoded positions one frame
+either side); the position residuals start where that puts each particle, and
+``loss.residual_motion`` measures the residuals' motion against the simulation's instead of
+against none. The images then move the surface where they show it; where they show nothing the
+particles keep the simulated flow.
+
+Data flow: decoded positions (F, N, 3) at the training frames -> State at the start frame ->
+continue_state -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3), the position
+residuals that decode to them (the current ones before the start), kept in ``FluidModel.fixed``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+
+SOLVERS = ("none", "dfsph", "pbf")
+
+
+@dataclass
+class GuideConfig:
+    """``[guide]`` of the presets (every key documented in ``presets/water.toml``)."""
+
+    solver: str = "none"      # none | dfsph | pbf
+    start: float = 0.0        # the simulation's first frame: the training frame at or after this fraction of the clip
+    viscosity: float = 0.0    # the simulated fluid's kinematic viscosity (m^2/s)
+
+    def validate(self, where: str) -> "GuideConfig":
+        if self.solver not in SOLVERS:
+            raise InputError(where, f"guide.solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        return self
+
+
+def start_frame(taus: np.ndarray, start: float) -> int:
+    """The index of the first training frame at or after ``start`` (a fraction of the clip)."""
+    return int(np.searchsorted(np.asarray(taus, np.float64), start - 1e-9))
+
+
+@torch.no_grad()
+def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torch.Tensor, dict]:
+    """The position residuals (N, F, 3) that put each particle where a simulation from the frame
+    ``cfg.start`` carries it at each later training frame (``times_s``, seconds, the residuals'
+    knots), given the model as it is now (its decoder and its current residuals, which the frames
+    before the start keep). Returns them and a report."""
+    from ..downstream.predict import State, continue_state
+
+    times = np.asarray(times_s, np.float64)
+    dec = model.decoder
+    if dec is None or dec.knots is None or dec.residual_dp.shape[1] != len(times):
+        raise InputError("guide", "a simulated guide needs the decoder's position residuals at every training frame")
+    taus = np.asarray([model.time_map.tau(t) for t in times])
+    j0 = start_frame(taus, cfg.start)
+    out = dec.residual_dp.detach().clone()
+    report = {"solver": cfg.solver, "start_frame": j0, "frames": max(len(times) - 1 - j0, 0)}
+    if j0 >= len(times) - 1:
+        return out, report
+    # decoded positions before the box holds them: residuals that reach the simulated positions from there
+    decoded = torch.stack([p["unclamped"] for p in model.at_many(list(times), with_unclamped=True)])  # (F, N, 3)
+    held = torch.stack([p["means"] for p in model.at_many([float(times[j0])])])[0]
+    a, b = max(j0 - 1, 0), j0 + 1
+    vel = (decoded[b] - decoded[a]) / float(times[b] - times[a])
+    dt = float(np.median(np.diff(times[j0:])))
+    lo, hi = np.asarray(model.bounds.lo, np.float64), np.asarray(model.bounds.hi, np.float64)
+    state = State(positions=held.cpu().numpy(), velocities=vel.cpu().numpy(), source_index=np.arange(len(model)),
+                  time=float(times[j0]), domain=(lo, hi))
+    wall0 = time.perf_counter()
+    frames = int(round((times[-1] - times[j0]) / dt))
+    sim, rep = continue_state(state, frames=frames, fps=1.0 / dt, solver=cfg.solver, viscosity=cfg.viscosity,
+                              device=str(model.means.device))
+    k = np.clip(np.rint((times[j0:] - times[j0]) / dt).astype(np.int64), 0, len(sim.positions) - 1)
+    pos = torch.as_tensor(sim.positions[k], dtype=out.dtype, device=out.device)  # (F - j0, N, 3)
+    out[:, j0:] += (pos - decoded[j0:]).transpose(0, 1)
+    if not bool(torch.isfinite(out).all()):
+        raise InputError("guide", f"the {cfg.solver} continuation from {times[j0]:.3f} s is not finite")
+    report.update(start_s=float(times[j0]), steps=rep["steps"], spacing=rep["spacing"],
+                  wall_s=round(time.perf_counter() - wall0, 2))
+    log(f"guide: {cfg.solver} from {times[j0]:.3f} s through {report['frames']} frames, {len(model)} particles, "
+        f"spacing {rep['spacing'] * 1000:.1f} mm, {rep['steps']} steps in {report['wall_s']:.0f} s")
+    return out, report
+
+
+__all__ = ["GuideConfig", "simulate_guide", "start_frame", "SOLVERS"]

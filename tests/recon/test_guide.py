@@ -1,0 +1,96 @@
+"""The simulated guide (``[guide]``, recon/guide.py): the residual phase starts where a simulation
+from the decoded particles carries them, and loss.residual_motion measures against it."""
+
+import numpy as np
+import pytest
+import torch
+
+from gf_core.data import load_dataset
+from gf_core.errors import InputError
+from gf_core.formats.hdf5 import read_recon
+from gf_core.recon.context import Frame
+from gf_core.recon.schedule import Plateau
+from gf_core.recon.terms import RESIDUAL_MOTION
+from gf_core.recon.trainer import Trainer, reconstruct
+from helpers import quick_config, quiet, small_config
+
+G = 9.81  # the simulators' gravity, m/s^2 along -z
+
+
+def guided_trainer(blob, tmp_path, **over):
+    cfg = small_config(guide={"solver": "pbf", "start": 0.6}, **over)
+    tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
+    tr.initialise()
+    return tr
+
+
+def test_the_guide_puts_the_later_frames_where_a_simulation_from_the_start_frame_carries_them(blob, tmp_path):
+    """A decoder that moves every particle at one velocity (its position residuals, before the
+    guide): from the start frame on, the decoded cloud's mean moves as a simulated free flight from
+    that frame's position and velocity (pressure and XSPH conserve momentum); before it nothing
+    changes; residual_motion is 0 on the guide itself and counts what the residuals add to it."""
+    tr = guided_trainer(blob, tmp_path)
+    dec, times = tr.model.decoder, tr.views.unique_times
+    taus = np.array([tr.time_map.tau(t) for t in times])
+    j0 = int(np.searchsorted(taus, 0.6 - 1e-9))
+    assert 0 < j0 < len(times) - 1
+    v = torch.tensor([0.3, 0.0, 0.5])
+    with torch.no_grad():  # the fluid's decoded positions pass the start frame's at v
+        dec.residual_dp.copy_((torch.as_tensor(times, dtype=torch.float32)[None, :, None] - float(times[j0])) * v)
+    before = [p["means"].clone() for p in tr.model.at_many(list(times))]
+    tr.phase = 3
+    tr.start_guide()
+    with torch.no_grad():
+        after = [p["means"] for p in tr.model.at_many(list(times))]
+    for j in range(j0 + 1):  # up to the start frame the particles stay where they were decoded
+        torch.testing.assert_close(after[j], before[j], atol=1e-5, rtol=0)
+    for j in range(j0 + 1, len(times)):
+        dt = float(times[j] - times[j0])
+        want = v.numpy() * dt + np.array([0.0, 0.0, -0.5 * G * dt * dt])
+        got = (after[j] - after[j0]).mean(0).numpy()
+        np.testing.assert_allclose(got, want, atol=0.01)
+        assert not torch.allclose(after[j], before[j], atol=1e-3)  # gravity: not the decoder's straight line
+    assert torch.equal(tr.model.fixed["guide_dp"], dec.residual_dp.detach())
+    f = Frame(tr.ctx, float(times[j0 + 1]), float(times[j0 + 1]), tr.model.at(float(times[j0 + 1])), [])
+    w = {"residual_motion": 1.0}
+    assert float(RESIDUAL_MOTION.frame(tr.ctx, f, w)) == 0.0
+    with torch.no_grad():
+        dec.residual_dp[:, j0 + 1] += tr.ctx.spacing  # one spacing along every axis at one frame
+    assert float(RESIDUAL_MOTION.frame(tr.ctx, f, w)) == pytest.approx(3.0, rel=1e-4)
+
+
+def test_the_guide_follows_densification_and_checkpoints(blob, tmp_path):
+    tr = guided_trainer(blob, tmp_path)
+    tr.phase = 3
+    tr.start_guide()
+    g = tr.model.fixed["guide_dp"].clone()
+    n = len(tr.model)
+    keep = torch.ones(n, dtype=torch.bool)
+    keep[0] = False
+    per = {**tr.model.per_particle(), **tr.model.per_particle_fixed()}
+    tr.opt.surgery(keep, {k: v[1:3].detach() for k, v in per.items()})  # drop particle 0, clone 1 and 2
+    got = tr.model.fixed["guide_dp"]
+    assert got.shape[0] == len(tr.model) == n + 1
+    assert torch.equal(got[:n - 1], g[1:]) and torch.equal(got[n - 1:], g[1:3])
+    tr.plateau = Plateau(tr.cfg.phases.plateau_window, tr.cfg.phases.plateau_tol)
+    tr.save_checkpoint()
+    back = Trainer(tr.cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
+    back.load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    assert torch.equal(back.model.fixed["guide_dp"], got)
+
+
+def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
+    lines = []
+    cfg = quick_config(guide={"solver": "pbf", "start": 0.5})
+    metrics = reconstruct(load_dataset(blob), tmp_path / "run", cfg, log=lines.append)
+    assert any(s.startswith("guide: pbf from") for s in lines)
+    r = read_recon(tmp_path / "run" / "recon.h5")
+    guide = [e["guide"] for e in r.metrics["phase_ends"] if "guide" in e]
+    assert len(guide) == 1 and guide[0]["solver"] == "pbf" and guide[0]["steps"] > 0
+    assert np.isfinite(r.means).all()
+    with pytest.raises(InputError, match="guide.solver must be one of"):
+        small_config(guide={"solver": "sph"}).validate()
+    with pytest.raises(InputError, match="guide.solver needs decoder.residuals"):
+        small_config(guide={"solver": "pbf"}, decoder={"residuals": False, "color_residuals": False,
+                                                       "time_interpolation": "decoder"},
+                     phases={"freeze_decoder": False}).validate()
