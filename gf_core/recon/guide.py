@@ -4,7 +4,7 @@ Inside a uniform pool the images change only at the fluid's rim: they give the p
 reason to move (the aperture problem of tracking), so a reconstruction of a splash stands still
 where the fluid flows, and its kinetic energy after an impact is a fraction of the truth's. A
 particle simulator carries that flow. At the start of the residual phase (``phases.residuals_from``)
-the decoded particles at the frame ``guide.start`` (a fraction of the clip) are simulated through
+the decoded particles at the frame ``guide.start`` (seconds into the clip) are simulated through
 the clip's later training frames (``downstream.predict.continue_state``: the rest state from the
 particles themselves, the scene box as the domain, velocities from the decoded positions one frame
 either side); the position residuals start where that puts each particle, and
@@ -35,7 +35,7 @@ class GuideConfig:
     """``[guide]`` of the presets (every key documented in ``presets/water.toml``)."""
 
     solver: str = "none"      # none | dfsph | pbf
-    start: float = 0.0        # the simulation's first frame: the training frame at or after this fraction of the clip
+    start: float = 0.0        # the simulation's first frame: the training frame at or after this many seconds into the clip
     viscosity: float = 0.0    # the simulated fluid's kinematic viscosity (m^2/s)
 
     def validate(self, where: str) -> "GuideConfig":
@@ -44,25 +44,26 @@ class GuideConfig:
         return self
 
 
-def start_frame(taus: np.ndarray, start: float) -> int:
-    """The index of the first training frame at or after ``start`` (a fraction of the clip)."""
-    return int(np.searchsorted(np.asarray(taus, np.float64), start - 1e-9))
+def start_frame(times_s, start: float) -> int:
+    """The index of the first training frame (``times_s``, seconds, increasing) at or after
+    ``start`` seconds into the clip."""
+    t = np.asarray(times_s, np.float64)
+    return int(np.searchsorted(t - t[0], start - 1e-9))
 
 
 @torch.no_grad()
 def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torch.Tensor, dict]:
     """The position residuals (N, F, 3) that put each particle where a simulation from the frame
-    ``cfg.start`` carries it at each later training frame (``times_s``, seconds, the residuals'
-    knots), given the model as it is now (its decoder and its current residuals, which the frames
-    before the start keep). Returns them and a report."""
+    ``cfg.start`` (seconds into the clip) carries it at each later training frame (``times_s``,
+    seconds: the residuals' knots), given the model as it is now (its decoder and its current
+    residuals, which the frames before the start keep). Returns them and a report."""
     from ..downstream.predict import State, continue_state
 
     times = np.asarray(times_s, np.float64)
     dec = model.decoder
     if dec is None or dec.knots is None or dec.residual_dp.shape[1] != len(times):
         raise InputError("guide", "a simulated guide needs the decoder's position residuals at every training frame")
-    taus = np.asarray([model.time_map.tau(t) for t in times])
-    j0 = start_frame(taus, cfg.start)
+    j0 = start_frame(times, cfg.start)
     out = dec.residual_dp.detach().clone()
     report = {"solver": cfg.solver, "start_frame": j0, "frames": max(len(times) - 1 - j0, 0)}
     if j0 >= len(times) - 1:
