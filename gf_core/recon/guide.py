@@ -28,6 +28,7 @@ import torch
 from ..errors import InputError
 
 SOLVERS = ("none", "dfsph", "pbf")
+BEFORE = ("decoder", "ballistic")
 
 
 @dataclass
@@ -37,10 +38,13 @@ class GuideConfig:
     solver: str = "none"      # none | dfsph | pbf
     start: float = 0.0        # the simulation's first frame: the training frame at or after this many seconds into the clip
     viscosity: float = 0.0    # the simulated fluid's kinematic viscosity (m^2/s)
+    before: str = "decoder"   # the frames before the start: decoder (as decoded) | ballistic (free flight back from the start)
 
     def validate(self, where: str) -> "GuideConfig":
         if self.solver not in SOLVERS:
             raise InputError(where, f"guide.solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.before not in BEFORE:
+            raise InputError(where, f"guide.before must be one of {', '.join(BEFORE)}, got {self.before!r}")
         return self
 
 
@@ -84,6 +88,11 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
     k = np.clip(np.rint((times[j0:] - times[j0]) / dt).astype(np.int64), 0, len(sim.positions) - 1)
     pos = torch.as_tensor(sim.positions[k], dtype=out.dtype, device=out.device)  # (F - j0, N, 3)
     out[:, j0:] += (pos - decoded[j0:]).transpose(0, 1)
+    if cfg.before == "ballistic" and j0 > 0:
+        g = torch.as_tensor(sim.gravity, dtype=out.dtype, device=out.device)
+        dt_back = torch.as_tensor(times[:j0] - times[j0], dtype=out.dtype, device=out.device)[:, None, None]
+        fly = held[None] + vel[None] * dt_back + 0.5 * g * dt_back * dt_back  # (j0, N, 3)
+        out[:, :j0] += (fly - decoded[:j0]).transpose(0, 1)
     if not bool(torch.isfinite(out).all()):
         raise InputError("guide", f"the {cfg.solver} continuation from {times[j0]:.3f} s is not finite")
     report.update(start_s=float(times[j0]), steps=rep["steps"], spacing=rep["spacing"],
@@ -93,4 +102,4 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
     return out, report
 
 
-__all__ = ["GuideConfig", "simulate_guide", "start_frame", "SOLVERS"]
+__all__ = ["GuideConfig", "simulate_guide", "start_frame", "SOLVERS", "BEFORE"]

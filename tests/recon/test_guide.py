@@ -17,8 +17,8 @@ from helpers import quick_config, quiet, small_config
 G = 9.81  # the simulators' gravity, m/s^2 along -z
 
 
-def guided_trainer(blob, tmp_path, **over):
-    cfg = small_config(guide={"solver": "pbf", "start": 0.45}, **over)
+def guided_trainer(blob, tmp_path, **guide):
+    cfg = small_config(guide={"solver": "pbf", "start": 0.45, **guide})
     tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
     tr.initialise()
     return tr
@@ -56,6 +56,29 @@ def test_the_guide_puts_the_later_frames_where_a_simulation_from_the_start_frame
     with torch.no_grad():
         dec.residual_dp[:, j0 + 1] += tr.ctx.spacing  # one spacing along every axis at one frame
     assert float(RESIDUAL_MOTION.frame(tr.ctx, f, w)) == pytest.approx(3.0, rel=1e-4)
+
+
+def test_a_ballistic_guide_flies_the_frames_before_the_start_back_under_gravity(blob, tmp_path):
+    """``before = "ballistic"``: before the start frame each particle is where free flight from its
+    place and velocity at the start frame puts it; from the start on, as with the decoder."""
+    tr = guided_trainer(blob, tmp_path, before="ballistic")
+    dec, times = tr.model.decoder, tr.views.unique_times
+    j0 = 5
+    v = torch.tensor([0.3, 0.0, 0.2])
+    with torch.no_grad():
+        dec.residual_dp.copy_((torch.as_tensor(times, dtype=torch.float32)[None, :, None] - float(times[j0])) * v)
+        start = tr.model.at(float(times[j0]))["means"].clone()
+    tr.phase = 3
+    tr.start_guide()
+    with torch.no_grad():
+        raw = [p["unclamped"] for p in tr.model.at_many(list(times), with_unclamped=True)]
+    torch.testing.assert_close(raw[j0], start, atol=1e-5, rtol=0)
+    for j in range(j0):
+        dt = float(times[j] - times[j0])
+        want = start + v * dt + torch.tensor([0.0, 0.0, -0.5 * G * dt * dt])
+        torch.testing.assert_close(raw[j], want, atol=1e-4, rtol=0)
+    with pytest.raises(InputError, match="guide.before must be one of"):
+        small_config(guide={"before": "backwards"}).validate()
 
 
 def test_the_guide_follows_densification_and_checkpoints(blob, tmp_path):
