@@ -27,6 +27,7 @@ KEYS = {  # key -> the types it may hold (the schema of Trainer.checkpoint_state
     "elapsed": (int, float), "spacing": (int, float), "h": (int, float), "volume": (int, float),
     "box_source": (str,), "init_source": (str,), "rng_torch": (torch.Tensor,), "rng_numpy": (str,)}
 OPTIONAL = {"phase_t0": (int, float), "total_bad_steps": (int,), "frame_err": (list,), "phase_ends": (list,),
+            "guide": (dict,),
             "time_map": (list,)}
 
 
@@ -82,7 +83,8 @@ def capture(tr) -> dict:
             "optimizer": tr.opt.state_dict(), "plateau": tr.plateau.state(),
             "rng_torch": tr.gen.get_state(), "rng_numpy": json.dumps(tr.ctx.rng.bit_generator.state),
             "total_bad_steps": tr.total_bad_steps, "frame_err": tr.sampler.frame_err.tolist(),
-            "phase_ends": list(tr.phase_end_reasons)}
+            "phase_ends": list(tr.phase_end_reasons),
+            **({"guide": dict(tr.guide_report)} if tr.guide_report is not None else {})}
 
 
 def restore(tr, st: dict, path: Path) -> None:
@@ -120,6 +122,7 @@ def restore(tr, st: dict, path: Path) -> None:
     tr.elapsed, tr.phase_t0 = st["elapsed"], st.get("phase_t0", 0.0)
     tr.total_bad_steps = st.get("total_bad_steps", 0)
     tr.phase_end_reasons = list(st.get("phase_ends", []))
+    tr.guide_report = st.get("guide")
     if "frame_err" in st:
         tr.sampler.frame_err = np.asarray(st["frame_err"], np.float64)
     tr.plateau = Plateau(tr.cfg.phases.plateau_window, tr.cfg.phases.plateau_tol)

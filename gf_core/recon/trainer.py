@@ -70,6 +70,7 @@ class Trainer:
         self.phase, self.phase_t0, self.elapsed = 1, 0.0, 0.0
         self.bad_steps = self.total_bad_steps = 0
         self.phase_end_reasons = []  # why each phase ended (logged, and in recon.h5's metrics)
+        self.guide_report = None     # [guide]: what the simulation did (recon.h5's metrics "guide")
         self.model = self.opt = None
 
     # ---- the parts ---------------------------------------------------------------------------------
@@ -135,7 +136,8 @@ class Trainer:
         bg = self.sampler.background()
         times = self.sampler.times(self.phase, schedule.window_width(cfg, self.phase, phase_progress))
         per_time = [(t, self.sampler.view_indices(t)) for t in times]
-        decoded = self.model.at_many([t for t, _ in per_time], with_unclamped=True) if use_dec else [self.model.at(None)] * len(per_time)
+        decoded = (self.model.at_many([t for t, _ in per_time], with_unclamped=True) if use_dec
+                   else [self.model.at(None)] * len(per_time))
         values, frames, outs, shots = {}, [], [], {}
         for (t, idx), p in zip(per_time, decoded):
             f = Frame(ctx, float(t), float(t) if use_dec else "canonical", p, idx)
@@ -247,7 +249,7 @@ class Trainer:
         with torch.no_grad():
             self.model.decoder.residual_dp.copy_(guide)
         self.model.set_per_particle("guide_dp", guide)
-        self.phase_end_reasons.append({"phase": self.phase, "iteration": self.iteration, "guide": report})
+        self.guide_report = report
 
     def _next_phase(self, now: float, reason: str, t_start: float) -> None:
         self._end_phase(now, reason)
@@ -318,7 +320,8 @@ class Trainer:
         final_test = self.heldout_psnr()
         metrics = {"iterations": self.iteration, "wall_s": self.elapsed, "particles": len(self.model),
                    "train_psnr_last": runlog.train_psnr, "test_psnr": final_test if final_test is not None else last_test,
-                   "bad_steps": self.total_bad_steps, "phase_ends": self.phase_end_reasons}
+                   "bad_steps": self.total_bad_steps, "phase_ends": self.phase_end_reasons,
+                   **({"guide": self.guide_report} if self.guide_report is not None else {})}
         self.save_checkpoint()
         path = self.write_result(metrics)
         self.log(f"wrote {path}: {len(self.model)} particles, {self.iteration} iterations in {self.elapsed:.1f} s"

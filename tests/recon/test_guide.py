@@ -99,6 +99,7 @@ def test_the_guide_follows_densification_and_checkpoints(blob, tmp_path):
     back = Trainer(tr.cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
     back.load_checkpoint(tmp_path / "run" / "checkpoint.pt")
     assert torch.equal(back.model.fixed["guide_dp"], got)
+    assert back.guide_report == tr.guide_report and tr.guide_report["solver"] == "pbf"
 
 
 def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
@@ -107,8 +108,7 @@ def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
     metrics = reconstruct(load_dataset(blob), tmp_path / "run", cfg, log=lines.append)
     assert any(s.startswith("guide: pbf from") for s in lines)
     r = read_recon(tmp_path / "run" / "recon.h5")
-    guide = [e["guide"] for e in r.metrics["phase_ends"] if "guide" in e]
-    assert len(guide) == 1 and guide[0]["solver"] == "pbf" and guide[0]["steps"] > 0
+    assert r.metrics["guide"]["solver"] == "pbf" and r.metrics["guide"]["steps"] > 0
     assert np.isfinite(r.means).all()
     with pytest.raises(InputError, match="guide.solver must be one of"):
         small_config(guide={"solver": "sph"}).validate()
