@@ -128,17 +128,12 @@ def keep_rest_state(s: State, solver: str) -> State:
 # ---- the continuation --------------------------------------------------------------------------------
 def make_solver_for(s: State, solver: str, *, rest_density: float, viscosity: float = 0.0, device="cpu",
                     **overrides):
-    from ..sim import Domain
-    from ..sim.scenes import MATERIALS
-    from ..sim.solvers import solver as solver_named
+    from ..sim import Domain, solver_for_particles
 
     lo, hi = s.domain
     domain = Domain(tuple(map(float, lo)), tuple(map(float, hi)))
-    spacing, V = rest_state(s, solver)
-    entry = solver_named(solver)
-    overrides = {"xsph": MATERIALS["water"]["xsph"], **overrides}  # the XSPH the simulate presets use
-    return entry.cls(entry.params(particle_radius=spacing / 2.0, rest_density=rest_density, rest_volume=V,
-                                  viscosity=viscosity, **overrides), domain, device=device)
+    return solver_for_particles(s.positions, domain, solver, rest_density=rest_density, viscosity=viscosity,
+                                rest=rest_state(s, solver), device=device, **overrides)
 
 
 def continue_state(s: State, *, frames: int, fps: float, solver: str = "pbf", rest_density: float = 1000.0,

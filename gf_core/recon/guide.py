@@ -5,15 +5,15 @@ reason to move (the aperture problem of tracking), so a reconstruction of a spla
 where the fluid flows, and its kinetic energy after an impact is a fraction of the truth's. A
 particle simulator carries that flow. At the start of the residual phase (``phases.residuals_from``)
 the decoded particles at the frame ``guide.start`` (seconds into the clip) are simulated through
-the clip's later training frames (``downstream.predict.continue_state``: the rest state from the
-particles themselves, the scene box as the domain, velocities from the decoded positions one frame
-either side); the position residuals start where that puts each particle, and
+the clip's later training frames (``sim.solver_for_particles`` + ``sim.run_frames``, as ``gf-cli
+predict`` continues a reconstruction: the rest state from the particles themselves, the scene box as
+the domain, velocities from the decoded positions one frame either side); the position residuals start where that puts each particle, and
 ``loss.residual_motion`` measures the residuals' motion against the simulation's instead of
 against none. The images then move the surface where they show it; where they show nothing the
 particles keep the simulated flow.
 
-Data flow: decoded positions (F, N, 3) at the training frames -> State at the start frame ->
-continue_state -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3), the position
+Data flow: decoded positions (F, N, 3) at the training frames -> positions and velocities at the
+start frame -> the simulation -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3), the position
 residuals that decode to them (the current ones before the start), kept in ``FluidModel.fixed``.
 """
 
@@ -61,7 +61,7 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
     ``cfg.start`` (seconds into the clip) carries it at each later training frame (``times_s``,
     seconds: the residuals' knots), given the model as it is now (its decoder and its current
     residuals, which the frames before the start keep). Returns them and a report."""
-    from ..downstream.predict import State, continue_state
+    from ..sim import Domain, prepare_particles, run_frames, solver_for_particles
 
     times = np.asarray(times_s, np.float64)
     dec = model.decoder
@@ -78,27 +78,30 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
     a, b = max(j0 - 1, 0), j0 + 1
     vel = (decoded[b] - decoded[a]) / float(times[b] - times[a])
     dt = float(np.median(np.diff(times[j0:])))
-    lo, hi = np.asarray(model.bounds.lo, np.float64), np.asarray(model.bounds.hi, np.float64)
-    state = State(positions=held.cpu().numpy(), velocities=vel.cpu().numpy(), source_index=np.arange(len(model)),
-                  time=float(times[j0]), domain=(lo, hi))
+    domain = Domain(tuple(map(float, model.bounds.lo)), tuple(map(float, model.bounds.hi)))
+    dev = model.means.device
     wall0 = time.perf_counter()
+    sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=cfg.viscosity, device=dev,
+                               where="guide")
+    x, v, _ = prepare_particles(held.cpu().numpy(), vel.cpu().numpy(), sol.domain, sol.spacing)
     frames = int(round((times[-1] - times[j0]) / dt))
-    sim, rep = continue_state(state, frames=frames, fps=1.0 / dt, solver=cfg.solver, viscosity=cfg.viscosity,
-                              device=str(model.means.device))
-    k = np.clip(np.rint((times[j0:] - times[j0]) / dt).astype(np.int64), 0, len(sim.positions) - 1)
-    pos = torch.as_tensor(sim.positions[k], dtype=out.dtype, device=out.device)  # (F - j0, N, 3)
+    res = run_frames(sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
+                     torch.as_tensor(v, dtype=torch.float32, device=dev), fps=1.0 / dt, seconds=frames * dt)
+    positions = np.stack(res.positions)  # (frames + 1, N, 3)
+    k = np.clip(np.rint((times[j0:] - times[j0]) / dt).astype(np.int64), 0, len(positions) - 1)
+    pos = torch.as_tensor(positions[k], dtype=out.dtype, device=out.device)  # (F - j0, N, 3)
     out[:, j0:] += (pos - decoded[j0:]).transpose(0, 1)
     if cfg.before == "ballistic" and j0 > 0:
-        g = torch.as_tensor(sim.gravity, dtype=out.dtype, device=out.device)
+        g = sol.g.to(dtype=out.dtype, device=out.device)
         dt_back = torch.as_tensor(times[:j0] - times[j0], dtype=out.dtype, device=out.device)[:, None, None]
         fly = held[None] + vel[None] * dt_back + 0.5 * g * dt_back * dt_back  # (j0, N, 3)
         out[:, :j0] += (fly - decoded[:j0]).transpose(0, 1)
     if not bool(torch.isfinite(out).all()):
         raise InputError("guide", f"the {cfg.solver} continuation from {times[j0]:.3f} s is not finite")
-    report.update(start_s=float(times[j0]), steps=rep["steps"], spacing=rep["spacing"],
+    report.update(start_s=float(times[j0]), steps=len(res.steps), spacing=float(sol.spacing),
                   wall_s=round(time.perf_counter() - wall0, 2))
     log(f"guide: {cfg.solver} from {times[j0]:.3f} s through {report['frames']} frames, {len(model)} particles, "
-        f"spacing {rep['spacing'] * 1000:.1f} mm, {rep['steps']} steps in {report['wall_s']:.0f} s")
+        f"spacing {sol.spacing * 1000:.1f} mm, {report['steps']} steps in {report['wall_s']:.0f} s")
     return out, report
 
 

@@ -54,6 +54,23 @@ def prepare_particles(x: np.ndarray, v: np.ndarray, domain: Domain, spacing: flo
     return x, v, {"outside_moved": int(out.sum()), "coincident_separated": int(dup.sum())}
 
 
+def solver_for_particles(positions, domain: Domain, name: str, *, rest_density: float = 1000.0,
+                         viscosity: float = 0.0, rest: tuple | None = None, device="cpu", where: str = "predict",
+                         **overrides):
+    """Solver ``name`` for an arbitrary particle set (a reconstruction's) in ``domain``: its spacing
+    and rest volume are ``rest`` = (spacing, V) when given, else estimated from the particles
+    (``estimate_rest_state``: the interior at rest density whatever its packing); XSPH as the
+    simulate presets use for water."""
+    from .common import estimate_rest_state
+    from .scenes import MATERIALS
+
+    entry = solver(name)
+    spacing, V = rest if rest is not None else estimate_rest_state(positions, entry.kernel, where)
+    overrides = {"xsph": MATERIALS["water"]["xsph"], **overrides}
+    return entry.cls(entry.params(particle_radius=spacing / 2.0, rest_density=rest_density, rest_volume=V,
+                                  viscosity=viscosity, **overrides), domain, device=device)
+
+
 def simulate(scene: str, *, solver: str = "dfsph", particles: int | None = None,
              spacing: float | None = None, fps: float | None = None, seconds: float | None = None,
              device: str = "cpu", progress=None, settle_seconds: float | None = None,
@@ -149,6 +166,6 @@ def read_sim_config(writer) -> dict:
     return cfg if isinstance(cfg, dict) else {}
 
 
-__all__ = ["simulate", "make_solver", "prepare_particles", "DFSPH", "DFSPHParams", "PBF", "PBFParams",
+__all__ = ["simulate", "make_solver", "solver_for_particles", "prepare_particles", "DFSPH", "DFSPHParams", "PBF", "PBFParams",
            "Domain", "SimulationError", "SCENES", "SOLVERS", "solver", "presets", "initial_state", "run_frames",
            "settle"]
