@@ -1,8 +1,8 @@
 """Configuration of ``gf-cli reconstruct``: nested dataclasses read from TOML presets
 (``gf_core/recon/presets/{water,honey,smoke}.toml``, every key documented there) and user files.
 ``[loss]`` holds a weight per key of the registered loss terms (``terms/``), ``[decoder]`` is the
-decoder's own config (``decoder.DecoderConfig``), ``[densify]`` the strategy's (``strategy.DensifyConfig``), ``[guide]`` the simulated motion prior's
-(``guide.GuideConfig``).
+decoder's own config (``decoder.DecoderConfig``), ``[densify]`` the strategy's (``strategy.DensifyConfig``),
+``[guide]`` the simulated motion prior's (``guide.GuideConfig``).
 
 Precedence: built-in defaults < preset < ``--config FILE`` < command-line options. Unknown
 sections or keys, and values of the wrong type, are errors that name the file and the key.

@@ -7,14 +7,14 @@ particle simulator carries that flow. At the start of the residual phase (``phas
 the decoded particles at the frame ``guide.start`` (seconds into the clip) are simulated through
 the clip's later training frames (``sim.solver_for_particles`` + ``sim.run_frames``, as ``gf-cli
 predict`` continues a reconstruction: the rest state from the particles themselves, the scene box as
-the domain, velocities from the decoded positions one frame either side); the position residuals start where that puts each particle, and
-``loss.residual_motion`` measures the residuals' motion against the simulation's instead of
-against none. The images then move the surface where they show it; where they show nothing the
-particles keep the simulated flow.
+the domain, velocities from the decoded positions one frame either side); the position residuals
+start where that puts each particle, and ``loss.residual_motion`` measures the residuals' motion
+against the simulation's instead of against none. The images then move the surface where they
+show it; where they show nothing the particles keep the simulated flow.
 
 Data flow: decoded positions (F, N, 3) at the training frames -> positions and velocities at the
-start frame -> the simulation -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3), the position
-residuals that decode to them (the current ones before the start), kept in ``FluidModel.fixed``.
+start frame -> the simulation -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3),
+the position residuals that decode to them (the current ones before the start), kept in ``FluidModel.fixed``.
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ class GuideConfig:
     """``[guide]`` of the presets (every key documented in ``presets/water.toml``)."""
 
     solver: str = "none"      # none | dfsph | pbf
-    start: float = 0.0        # the simulation's first frame: the training frame at or after this many seconds into the clip
+    start: float = 0.0        # the first simulated frame: the training frame at or after this many seconds
     viscosity: float = 0.0    # the simulated fluid's kinematic viscosity (m^2/s)
-    before: str = "decoder"   # the frames before the start: decoder (as decoded) | ballistic (free flight back from the start)
+    before: str = "decoder"   # the frames before the start: decoder (as decoded) | ballistic (free flight back)
 
     def validate(self, where: str) -> "GuideConfig":
         if self.solver not in SOLVERS:
@@ -74,7 +74,7 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
         return out, report
     # decoded positions before the box holds them: residuals that reach the simulated positions from there
     decoded = torch.stack([p["unclamped"] for p in model.at_many(list(times), with_unclamped=True)])  # (F, N, 3)
-    held = torch.stack([p["means"] for p in model.at_many([float(times[j0])])])[0]
+    held = torch.maximum(torch.minimum(decoded[j0], model._hi), model._lo)  # where the box holds them
     a, b = max(j0 - 1, 0), j0 + 1
     vel = (decoded[b] - decoded[a]) / float(times[b] - times[a])
     dt = float(np.median(np.diff(times[j0:])))

@@ -166,6 +166,7 @@ def read_sim_config(writer) -> dict:
     return cfg if isinstance(cfg, dict) else {}
 
 
-__all__ = ["simulate", "make_solver", "solver_for_particles", "prepare_particles", "DFSPH", "DFSPHParams", "PBF", "PBFParams",
+__all__ = ["simulate", "make_solver", "solver_for_particles", "prepare_particles",
+           "DFSPH", "DFSPHParams", "PBF", "PBFParams",
            "Domain", "SimulationError", "SCENES", "SOLVERS", "solver", "presets", "initial_state", "run_frames",
            "settle"]
