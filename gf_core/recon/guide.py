@@ -7,13 +7,15 @@ particle simulator carries that flow. At the start of the residual phase (``phas
 the decoded particles at the frame ``guide.start`` (seconds into the clip) are simulated through
 the clip's later training frames (``sim.solver_for_particles`` + ``sim.run_frames``, as ``gf-cli
 predict`` continues a reconstruction: the rest state from the particles themselves, the scene box as
-the domain, velocities from the decoded positions one frame either side); the position residuals
-start where that puts each particle, and ``loss.residual_motion`` measures the residuals' motion
+the domain, velocities from the decoded positions one frame either side, averaged over each
+particle's neighbours). ``guide.start_at = "contact"`` finds the start frame itself: the last one
+before the decoded fluid meets the floor or a wall. The position residuals start where the
+simulation puts each particle, and ``loss.residual_motion`` measures the residuals' motion
 against the simulation's instead of against none. The images then move the surface where they
 show it; where they show nothing the particles keep the simulated flow.
 
-Data flow: decoded positions (F, N, 3) at the training frames -> positions and velocities at the
-start frame -> the simulation -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3),
+Data flow: decoded positions (F, N, 3) at the training frames -> the start frame -> positions and
+velocities there -> the simulation -> simulated positions at the later frames -> ``guide_dp`` (N, F, 3),
 the position residuals that decode to them (the current ones before the start), kept in ``FluidModel.fixed``.
 """
 
@@ -29,6 +31,8 @@ from ..errors import InputError
 
 SOLVERS = ("none", "dfsph", "pbf")
 BEFORE = ("decoder", "ballistic")
+START_AT = ("seconds", "contact")
+CONTACT_FRACTION = 0.05  # start_at = "contact": the share of the particles near a wall that makes a contact
 
 
 @dataclass
@@ -37,12 +41,15 @@ class GuideConfig:
 
     solver: str = "none"      # none | dfsph | pbf
     start: float = 0.0        # the first simulated frame: the training frame at or after this many seconds
+    start_at: str = "seconds"  # seconds (``start``) | contact (the frame before the fluid first meets a wall)
     viscosity: float = 0.0    # the simulated fluid's kinematic viscosity (m^2/s)
     before: str = "decoder"   # the frames before the start: decoder (as decoded) | ballistic (free flight back)
 
     def validate(self, where: str) -> "GuideConfig":
         if self.solver not in SOLVERS:
             raise InputError(where, f"guide.solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        if self.start_at not in START_AT:
+            raise InputError(where, f"guide.start_at must be one of {', '.join(START_AT)}, got {self.start_at!r}")
         if self.before not in BEFORE:
             raise InputError(where, f"guide.before must be one of {', '.join(BEFORE)}, got {self.before!r}")
         return self
@@ -55,26 +62,63 @@ def start_frame(times_s, start: float) -> int:
     return int(np.searchsorted(t - t[0], start - 1e-9))
 
 
+def contact_frame(decoded: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, spacing: float,
+                  fraction: float = CONTACT_FRACTION) -> int | None:
+    """The first frame of ``decoded`` (F, N, 3) in which at least ``fraction`` of the particles lie
+    within ``spacing`` of a face of the box [lo, hi] (the particle centres' box: the floor, or a
+    wall the fluid runs into); None when the fluid never meets one."""
+    gap = torch.minimum(decoded - lo, hi - decoded).min(-1).values  # (F, N): distance to the nearest face
+    near = (gap < spacing).to(decoded.dtype).mean(-1)
+    hit = torch.nonzero(near >= fraction)
+    return int(hit[0, 0]) if hit.numel() else None
+
+
+def smoothed_velocities(x: torch.Tensor, v: torch.Tensor, radius: float) -> torch.Tensor:
+    """Each particle's velocity averaged with its neighbours' within ``radius`` (itself included):
+    velocities from decoded positions carry the residuals' shuffle, which no neighbour shares."""
+    from ..sph.neighbors import neighbor_pairs
+
+    i, j = neighbor_pairs(x, radius, include_self=True)
+    total = torch.zeros_like(v).index_add_(0, i, v[j])
+    count = torch.zeros(x.shape[0], dtype=v.dtype, device=v.device).index_add_(0, i, torch.ones_like(i, dtype=v.dtype))
+    return total / count.clamp_min(1.0)[:, None]
+
+
+def guide_start(cfg: GuideConfig, times, decoded: torch.Tensor, lo, hi, spacing: float) -> tuple[int, dict]:
+    """The start frame's index and how it was chosen: ``cfg.start`` seconds into the clip, or with
+    ``start_at = "contact"`` the frame before the decoded fluid first meets a face of the box (the
+    last frame of free flight; 0 for fluid that rests on the floor from the start, the last frame
+    for fluid that never meets one)."""
+    if cfg.start_at == "seconds":
+        return start_frame(times, cfg.start), {"start_at": "seconds"}
+    c = contact_frame(decoded, lo, hi, spacing)
+    j0 = len(times) - 1 if c is None else max(c - 1, 0)
+    return j0, {"start_at": "contact", "contact_frame": c}
+
+
 @torch.no_grad()
-def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torch.Tensor, dict]:
-    """The position residuals (N, F, 3) that put each particle where a simulation from the frame
-    ``cfg.start`` (seconds into the clip) carries it at each later training frame (``times_s``,
-    seconds: the residuals' knots), given the model as it is now (its decoder and its current
-    residuals, which the frames before the start keep). Returns them and a report."""
+def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=print) -> tuple[torch.Tensor, dict]:
+    """The position residuals (N, F, 3) that put each particle where a simulation from the start
+    frame (``guide_start``) carries it at each later training frame (``times_s``, seconds: the
+    residuals' knots), given the model as it is now (its decoder and its current residuals, which
+    the frames before the start keep); ``spacing``: the reconstruction's particle spacing (metres).
+    Returns them and a report."""
     from ..sim import Domain, prepare_particles, run_frames, solver_for_particles
 
     times = np.asarray(times_s, np.float64)
     dec = model.decoder
     if dec is None or dec.knots is None or dec.residual_dp.shape[1] != len(times):
         raise InputError("guide", "a simulated guide needs the decoder's position residuals at every training frame")
-    j0 = start_frame(times, cfg.start)
     out = dec.residual_dp.detach().clone()
-    report = {"solver": cfg.solver, "start_frame": j0, "frames": max(len(times) - 1 - j0, 0)}
-    if j0 >= len(times) - 1:
-        return out, report
     # decoded positions before the box holds them: residuals that reach the simulated positions from there
     decoded = torch.stack([p["unclamped"] for p in model.at_many(list(times), with_unclamped=True)])  # (F, N, 3)
-    held = torch.maximum(torch.minimum(decoded[j0], model._hi), model._lo)  # where the box holds them
+    held_all = torch.maximum(torch.minimum(decoded, model._hi), model._lo)  # where the box holds them
+    j0, how = guide_start(cfg, times, held_all, model._lo, model._hi, spacing)
+    report = {"solver": cfg.solver, **how, "start_frame": j0, "frames": max(len(times) - 1 - j0, 0)}
+    if j0 >= len(times) - 1:
+        log(f"guide: nothing to simulate (start frame {j0} is the clip's last)")
+        return out, report
+    held = held_all[j0]
     a, b = max(j0 - 1, 0), j0 + 1
     vel = (decoded[b] - decoded[a]) / float(times[b] - times[a])
     dt = float(np.median(np.diff(times[j0:])))
@@ -83,6 +127,7 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
     wall0 = time.perf_counter()
     sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=cfg.viscosity, device=dev,
                                where="guide")
+    vel = smoothed_velocities(held, vel, 2.0 * sol.spacing)
     x, v, _ = prepare_particles(held.cpu().numpy(), vel.cpu().numpy(), sol.domain, sol.spacing)
     frames = int(round((times[-1] - times[j0]) / dt))
     res = run_frames(sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
@@ -100,9 +145,13 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, log=print) -> tuple[torc
         raise InputError("guide", f"the {cfg.solver} continuation from {times[j0]:.3f} s is not finite")
     report.update(start_s=float(times[j0]), steps=len(res.steps), spacing=float(sol.spacing),
                   wall_s=round(time.perf_counter() - wall0, 2))
-    log(f"guide: {cfg.solver} from {times[j0]:.3f} s through {report['frames']} frames, {len(model)} particles, "
+    why = "" if cfg.start_at == "seconds" else (
+        " (no contact with the box's faces)" if how["contact_frame"] is None else
+        f" (the fluid meets the box at frame {how['contact_frame']})")
+    log(f"guide: {cfg.solver} from {times[j0]:.3f} s{why} through {report['frames']} frames, {len(model)} particles, "
         f"spacing {sol.spacing * 1000:.1f} mm, {report['steps']} steps in {report['wall_s']:.0f} s")
     return out, report
 
 
-__all__ = ["GuideConfig", "simulate_guide", "start_frame", "SOLVERS", "BEFORE"]
+__all__ = ["GuideConfig", "simulate_guide", "start_frame", "guide_start", "contact_frame", "smoothed_velocities",
+           "SOLVERS", "BEFORE", "START_AT"]

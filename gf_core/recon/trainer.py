@@ -245,7 +245,8 @@ class Trainer:
     def start_guide(self) -> None:
         """``[guide]``: the position residuals start where a simulation from the decoded particles
         carries them, and loss.residual_motion measures against that (recon/guide.py)."""
-        guide, report = simulate_guide(self.model, self.views.unique_times, self.cfg.guide, log=self.log)
+        guide, report = simulate_guide(self.model, self.views.unique_times, self.cfg.guide, spacing=self.ctx.spacing,
+                                       log=self.log)
         with torch.no_grad():
             self.model.decoder.residual_dp.copy_(guide)
         self.model.set_per_particle("guide_dp", guide)

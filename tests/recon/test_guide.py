@@ -116,3 +116,62 @@ def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
         small_config(guide={"solver": "pbf"}, decoder={"residuals": False, "color_residuals": False,
                                                        "time_interpolation": "decoder"},
                      phases={"freeze_decoder": False}).validate()
+
+
+def test_a_contact_start_simulates_from_the_frame_before_the_fluid_meets_the_floor(blob, tmp_path):
+    """``start_at = "contact"``: the decoded fluid sinks at a constant speed; the simulation starts
+    at the last frame before 5 % of the particles come within a spacing of the box's floor, the
+    frames up to it keep their positions and the report names the contact. Fluid that never comes
+    near a face is not simulated (nothing changes)."""
+    tr = guided_trainer(blob, tmp_path, start_at="contact")
+    dec, times, model = tr.model.decoder, tr.views.unique_times, tr.model
+    with torch.no_grad():
+        z = model.at(float(times[0]))["means"][:, 2]
+    lo_z, sp = float(model._lo[2]), tr.ctx.spacing
+    want = 6  # the frame at which the lowest particles are to reach the floor
+    drop = (float(torch.quantile(z, 0.5)) - lo_z) / float(times[want] - times[0])  # half the fluid there at frame 6
+    t = torch.as_tensor(times - times[0], dtype=torch.float32)
+    with torch.no_grad():
+        dec.residual_dp.copy_(torch.tensor([0.0, 0.0, -drop]) * t[None, :, None])
+        decoded = torch.stack([p["means"] for p in model.at_many(list(times))])
+    gap = decoded[..., 2] - lo_z
+    contact = int(torch.nonzero((gap < sp).float().mean(-1) >= 0.05)[0, 0])
+    assert 0 < contact <= want
+    before = decoded.clone()
+    tr.phase = 3
+    tr.start_guide()
+    rep = tr.guide_report
+    assert rep["start_at"] == "contact" and rep["contact_frame"] == contact and rep["start_frame"] == contact - 1
+    assert rep["frames"] == len(times) - contact
+    with torch.no_grad():
+        after = torch.stack([p["means"] for p in model.at_many(list(times))])
+    torch.testing.assert_close(after[:contact], before[:contact], atol=1e-5, rtol=0)
+    assert not torch.allclose(after[contact:], before[contact:], atol=1e-3)
+
+    far = guided_trainer(blob, tmp_path / "far", start_at="contact")  # still, in the middle of the box
+    with torch.no_grad():
+        far.model.decoder.residual_dp.zero_()
+        mid = 0.5 * (far.model._lo + far.model._hi)
+        far.model.means.copy_(mid + 0.3 * (far.model.means - far.model.means.mean(0)) *
+                              (far.model._hi - far.model._lo).min() / (far.model.means.std(0).max() * 6))
+    far.phase = 3
+    far.start_guide()
+    assert far.guide_report["contact_frame"] is None and far.guide_report["frames"] == 0
+    assert torch.equal(far.model.fixed["guide_dp"], torch.zeros_like(far.model.fixed["guide_dp"]))
+    with pytest.raises(InputError, match="guide.start_at must be one of"):
+        small_config(guide={"start_at": "impact"}).validate()
+
+
+def test_the_start_velocities_average_the_shuffle_out_and_keep_a_common_motion():
+    """Neighbour-averaged start velocities: a common velocity is kept exactly; a shuffle of
+    +-1 m/s between neighbours on top of it is averaged down to a fraction."""
+    from gf_core.recon.guide import smoothed_velocities
+
+    g = torch.stack(torch.meshgrid(*[torch.arange(8.0)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.01
+    common = torch.tensor([0.2, -0.1, -1.5]).expand(g.shape[0], 3)
+    torch.testing.assert_close(smoothed_velocities(g, common.clone(), 0.02), common)
+    sign = ((g / 0.01).round().sum(-1) % 2 * 2 - 1)[:, None]  # a checkerboard: every neighbour the other way
+    shuffled = common + sign * torch.tensor([1.0, 1.0, 1.0])
+    got = smoothed_velocities(g, shuffled, 0.02)
+    interior = ((g > 0.015) & (g < 0.055)).all(-1)
+    assert float((got - common)[interior].norm(dim=-1).max()) < 0.35 * float(np.sqrt(3))
