@@ -153,6 +153,13 @@ def scene_record(name: str, spec: dict, ev: dict, pf: dict | None, targets: dict
         ratios = [max(r["kinetic"], 1e-30) / r["gt_kinetic"] for r in en
                   if kmax > 0 and r["gt_kinetic"] >= KINETIC_FLOOR * kmax]
         rec["kinetic_factor_max"] = float(max(max(q, 1 / q) for q in ratios)) if ratios else math.nan
+        # the same factor on the kinetic energy per kilogram (the mean squared speed), and the mass
+        # estimate's ratio to the truth's: the kinetic factor is their product
+        if "gt_speed_rms" in en[0]:
+            per_kg = [(max(r["speed_rms"], 1e-15) / r["gt_speed_rms"]) ** 2 for r in en
+                      if kmax > 0 and r["gt_kinetic"] >= KINETIC_FLOOR * kmax]
+            rec["specific_kinetic_factor_max"] = float(max(max(q, 1 / q) for q in per_kg)) if per_kg else math.nan
+            rec["mass_ratio"] = float(ev["energy"]["mass_total"] / ev["energy"]["gt_mass_total"])
         e0 = en[0]["total"]
         rec["energy_rise_max"] = float(max(r["total"] - e0 for r in en) / abs(e0)) if e0 else math.nan
         series.update(energy_time=[r["time"] for r in en], kinetic=[r["kinetic"] for r in en],
@@ -242,7 +249,8 @@ COLUMNS = [("scene", "scene", "s"), ("seed", "seed", "d"), ("particles_true", "N
            ("gt_to_recon_mean", "t->r", ".2f"), ("gt_to_recon_max", "t->r max", ".2f"),
            ("recon_to_gt_mean", "r->t", ".2f"), ("recon_to_gt_max", "r->t max", ".2f"),
            ("coverage", "covered", ".2f"), ("outside_max", "outside", ".3f"),
-           ("kinetic_factor_max", "KE factor", ".2f"), ("flow_following", "flow", ".2f"),
+           ("kinetic_factor_max", "KE factor", ".2f"), ("specific_kinetic_factor_max", "KE/kg factor", ".2f"),
+           ("mass_ratio", "mass", ".2f"), ("flow_following", "flow", ".2f"),
            ("energy_rise_max", "E rise", "+.2f"), ("missed", "missed", "s")]
 
 

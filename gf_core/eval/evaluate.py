@@ -365,18 +365,25 @@ def energies(model: FluidModel, r, times, states, sim, rest_density: float | Non
         sp = float(r.config.get("spacing") or 0.0)
         mass, src = rho * sp ** 3, f"{rho:g} kg/m^3 x spacing^3"
     z_ref = float(sim.domain_min[2]) if sim is not None else float(model.bounds.lo[2])
+    gm = sim.rest_density * (2.0 * sim.particle_radius) ** 3 if sim is not None else None
     rows = []
     for t, a in zip(times, states):
-        row = {"time": float(t), **mechanical_energy(a["means"].cpu().numpy(), a["velocities"].cpu().numpy(),
-                                                     mass, z_ref)}
+        v = a["velocities"].cpu().numpy()
+        # the root-mean-square speed: kinetic energy per kilogram, whatever the estimated mass
+        row = {"time": float(t), **mechanical_energy(a["means"].cpu().numpy(), v, mass, z_ref),
+               "speed_rms": float(np.sqrt((v.astype(np.float64) ** 2).sum(1).mean())) if len(v) else 0.0}
         if sim is not None:
             f = int(np.argmin(np.abs(sim.times - t)))
-            gm = sim.rest_density * (2.0 * sim.particle_radius) ** 3
             gt = mechanical_energy(sim.positions[f], sim.velocities[f], gm, z_ref)
-            row.update({f"gt_{k}": v for k, v in gt.items()})
+            gv = np.asarray(sim.velocities[f], np.float64)
+            row.update({f"gt_{k}": v for k, v in gt.items()},
+                       gt_speed_rms=float(np.sqrt((gv ** 2).sum(1).mean())) if len(gv) else 0.0)
         rows.append(row)
-    return {"mass_per_particle": mass, "mass_source": src, "rest_density": rho, "z_ref": z_ref,
-            "velocity_source": "decoder time derivative (analytic)", "per_frame": rows}
+    out = {"mass_per_particle": mass, "mass_source": src, "mass_total": mass * len(model), "rest_density": rho,
+           "z_ref": z_ref, "velocity_source": "decoder time derivative (analytic)", "per_frame": rows}
+    if sim is not None:
+        out["gt_mass_total"] = gm * len(sim.positions[0])
+    return out
 
 
 def plot_eval(result: dict, curve: list[dict], out: Path) -> list[str]:

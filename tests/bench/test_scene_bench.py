@@ -29,6 +29,10 @@ def test_bench_scenes_quick_makes_every_scene_kind_and_judges_it(tmp_path, monke
         assert 0 <= r["recon_to_gt_mean"] <= r["recon_to_gt_max"] < 50, name
         assert 0 <= r["outside_max"] <= 1 and 0 < r["coverage"] <= 1, name
         assert np.isfinite(r["kinetic_factor_max"]) and r["kinetic_factor_max"] >= 1, name
+        # the kinetic factor splits into the mass estimate's and the speeds' (per kilogram)
+        assert r["specific_kinetic_factor_max"] >= 1 and r["mass_ratio"] > 0, name
+        mass_factor = max(r["mass_ratio"], 1 / r["mass_ratio"])
+        assert r["kinetic_factor_max"] <= r["specific_kinetic_factor_max"] * mass_factor * (1 + 1e-9), name
         assert r["wall_s"] >= 0.95 * suite["scenes"][name]["time_budget"], name
         assert set(r["targets"]) >= {"test_psnr_mean", "chamfer_max", "outside_max", "kinetic_factor",
                                      "not_below_per_frame"}, name

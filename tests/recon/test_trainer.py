@@ -95,6 +95,11 @@ def test_tiny_scene_reconstruction_meets_psnr_and_chamfer(blob, tmp_path):
     assert np.mean([x["kinetic"] for x in en[4:]]) > 2 * en[0]["kinetic"]
     assert en[-1]["gt_kinetic"] > 2 * en[0]["gt_kinetic"]
     assert en[-1]["potential"] < en[0]["potential"] and en[-1]["gt_potential"] < en[0]["gt_potential"]
+    # the kinetic energy is the estimated mass times half the mean squared speed, in both
+    e = r["energy"]
+    for x in en:
+        assert x["kinetic"] == pytest.approx(0.5 * e["mass_total"] * x["speed_rms"] ** 2, rel=1e-6)
+        assert x["gt_kinetic"] == pytest.approx(0.5 * e["gt_mass_total"] * x["gt_speed_rms"] ** 2, rel=1e-6)
     assert pv["emd_mean"] < pv["emd_floor"] + 1.0
     assert r["particle_stats"]["count"] == r["particles"] and 0 < r["particle_stats"]["opacity"]["median"] <= 1
     # the files: metrics.jsonl has the logged fields, recon.h5 reads back with its decoder
