@@ -50,15 +50,18 @@ _LOSS_CLASSES: dict = {}
 def loss_config_class():
     """[loss]: a weight per key of the registered terms (``terms.TERMS``), with its default (the
     paper's Table 1 for its terms), each a non-negative number (0 computes nothing); and how the
-    image loss is taken. Made from the registry, so a new term's key is a config key at once."""
+    image loss is taken; for a term with a ``phase_key``, the first phase (2 or 3) it acts in. Made
+    from the registry, so a new term's key is a config key at once."""
     weights = tuple(terms.default_weights().items())
-    if weights not in _LOSS_CLASSES:
-        _LOSS_CLASSES[weights] = dataclasses.make_dataclass("LossConfig", [
+    starts = tuple(terms.phase_keys().items())
+    if (weights, starts) not in _LOSS_CLASSES:
+        _LOSS_CLASSES[(weights, starts)] = dataclasses.make_dataclass("LossConfig", [
             *[(k, float, field(default=v)) for k, v in weights],
+            *[(k, int, field(default=v)) for k, v in starts],
             ("background", str, field(default="random")),  # random | black | white | dataset (recon/sampling.py)
             ("blur_start", float, field(default=0.02)),    # phase 2 starts comparing images blurred by this x width
         ])
-    return _LOSS_CLASSES[weights]
+    return _LOSS_CLASSES[(weights, starts)]
 
 
 def LossConfig():  # noqa: N802 - reads as the dataclass it makes
@@ -175,6 +178,9 @@ class ReconConfig:
             v = getattr(lo, k)
             if not (isinstance(v, (int, float)) and v >= 0):
                 raise InputError(where, f"loss.{k} must be a non-negative number, got {v!r}")
+        for k in terms.phase_keys():
+            if getattr(lo, k) not in (2, 3):
+                raise InputError(where, f"loss.{k} must be 2 or 3 (the first phase the term acts in), got {getattr(lo, k)!r}")
         if not 0 <= lo.blur_start < 0.5:
             raise InputError(where, f"loss.blur_start must be in [0, 0.5), got {lo.blur_start}")
         if lo.rgb + lo.ssim <= 0:
@@ -234,7 +240,7 @@ RANGES = {
     "decoder.feature_dim": (1, 4096, False), "decoder.hidden_layers": (1, 64, False),
     "decoder.hidden_width": (1, 8192, False), "decoder.n_freqs": (0, 20, False),
     "decoder.canonical_time": (0.0, 1.0, False),
-    "loss.blur_start": (0.0, 0.5, False),
+    "loss.blur_start": (0.0, 0.5, False), **{f"loss.{k}": (2, 3, False) for k in terms.phase_keys()},
     "density.h_factor": (0.0, 10.0, True), "density.k": (1, 1024, False), "density.refresh_every": (1, 10**8, False),
     **{f"lr.{k}": _LR for k in ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest", "features", "mlp")},
     "lr.means_final": (0.0, 1.0, True), "lr.canonical_dynamic": (0.0, 100.0, False),

@@ -105,7 +105,8 @@ def blur(cfg: ReconConfig, phase: int, phase_progress: float) -> float:
 
 def loss_weights(cfg: ReconConfig, phase: int, ramp_progress: float) -> dict:
     """Every ``[loss]`` weight in ``phase`` (1-3) at ramp progress ``ramp_progress`` in [0, 1]: a
-    term's final weight, 0 outside the phases it acts in (``Term.phases``), ramped as its kind says
+    term's final weight, 0 outside the phases it acts in (``Term.phases``, or from the phase its
+    ``Term.phase_key`` holds), ramped as its kind says
     (``Term.ramp``: Eq. 11's schedules of lambda_d and of lambda_a / lambda_v above)."""
     lo, ph = cfg.loss, cfg.phases
     r = ph.phase1_reg
@@ -114,7 +115,7 @@ def loss_weights(cfg: ReconConfig, phase: int, ramp_progress: float) -> dict:
     for t in registry.TERMS:
         for key in t.keys():
             base = getattr(lo, key)
-            if not on[t.phases]:
+            if not (phase >= getattr(lo, t.phase_key[0]) if t.phase_key else on[t.phases]):
                 w[key] = 0.0
             elif t.ramp == "density":
                 w[key] = 0.0 if phase == 1 else ph.phase2_density * base * ramp_progress if phase == 2 else \

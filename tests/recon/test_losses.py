@@ -501,6 +501,47 @@ def test_coherence_term_reaches_the_neighbouring_frames_residuals(small_blob, tm
     assert tr.model.decoder.features.grad is None
 
 
+def test_coherence_from_2_trains_the_decoder_in_phase_2(small_blob, tmp_path):
+    """loss.coherence_from = 2: the term acts from phase 2, where theta and Phi learn (the residuals
+    wait for phases.residuals_from), and its gradient reaches them there; the default (3) leaves
+    phase 2 without it; any other phase is refused."""
+    from gf_core.recon import schedule
+    from gf_core.recon.terms import COHERENCE
+
+    on = quick_config(phases={"iterations": 90}, loss={"coherence": 0.01, "coherence_from": 2})
+    off = quick_config(phases={"iterations": 90}, loss={"coherence": 0.01})
+    assert off.loss.coherence_from == 3
+    assert schedule.loss_weights(on, 2, 1.0)["coherence"] == 0.01
+    assert schedule.loss_weights(off, 2, 1.0)["coherence"] == 0.0
+    assert schedule.loss_weights(off, 3, 1.0)["coherence"] == 0.01
+    assert schedule.loss_weights(on, 1, 1.0)["coherence"] == 0.0
+    for bad in (1, 4):
+        with pytest.raises(InputError, match="loss.coherence_from"):
+            quick_config(loss={"coherence_from": bad})
+
+    tr = Trainer(on, load_dataset(small_blob), out=tmp_path / "g", log=quiet)
+    tr.initialise()
+    tr.phase = 2
+    tr.set_rates(0.4, 0.5)
+    dec = tr.model.decoder
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():  # a decoder that has learnt something: particles that move apart
+        dec.features.copy_(torch.randn(dec.features.shape, generator=g))
+        for p in dec.layers.parameters():
+            p.copy_(0.3 * torch.randn(p.shape, generator=g))
+    term_at(tr, COHERENCE, tr.views.unique_times[2]).backward()
+    assert float(dec.features.grad.abs().sum()) > 0
+    assert all(float(p.grad.abs().sum()) > 0 for p in dec.layers.parameters())
+
+    def phases_logged(cfg, name):
+        reconstruct(load_dataset(small_blob), tmp_path / name, cfg, log=quiet)
+        rows = [json.loads(s) for s in (tmp_path / name / "metrics.jsonl").read_text().splitlines()]
+        return {r["phase"] for r in rows if r["terms"].get("coherence", 0) > 0}
+
+    assert phases_logged(on, "on") == {2, 3}
+    assert phases_logged(off, "off") == {3}
+
+
 def test_density_spread_is_zero_for_one_volume_and_pulls_frames_together():
     """incompressible.density_spread: 0 when every frame has the same mean density (however the
     particles sit); a frame packed tighter than another raises it, and the gradient spreads the

@@ -57,10 +57,15 @@ def default_weights(terms=None) -> dict:
     return {k: v for t in (TERMS if terms is None else terms) for k, v in t.weights}
 
 
+def phase_keys(terms=None) -> dict:
+    """Every ``[loss]`` key that sets the first phase of a term (``Term.phase_key``), with its default."""
+    return dict(t.phase_key for t in (TERMS if terms is None else terms) if t.phase_key is not None)
+
+
 def check_registry(terms=None) -> None:
     """Names and weight keys unique; ``per``, ``phases``, ``ramp`` and ``needs`` known."""
     terms = TERMS if terms is None else terms
-    names, keys = [t.name for t in terms], weight_keys(terms)
+    names, keys = [t.name for t in terms], list(weight_keys(terms)) + list(phase_keys(terms))
     for what, seq in (("term name", names), ("weight key", keys)):
         dup = {x for x in seq if seq.count(x) > 1}
         if dup:
@@ -69,8 +74,10 @@ def check_registry(terms=None) -> None:
         if t.per not in ("frame", "step") or t.phases not in PHASES or t.ramp not in RAMPS \
                 or any(n not in NEEDS for n in t.needs):
             raise ValueError(f"loss term {t.name}: unknown per / phases / ramp / needs")
+        if t.phase_key is not None and (len(t.phase_key) != 2 or t.phase_key[1] not in (2, 3)):
+            raise ValueError(f"loss term {t.name}: phase_key must be (key, 2 or 3)")
 
 
 check_registry()
 
-__all__ = ["TERMS", "Term", "weight_keys", "default_weights", "check_registry"]
+__all__ = ["TERMS", "Term", "weight_keys", "default_weights", "phase_keys", "check_registry"]

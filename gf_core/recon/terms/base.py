@@ -6,7 +6,8 @@ entering the loss) or ``per = "step"`` (once per step, over all its frames and i
 draws per frame it draws in ``prepare``). It is
 never evaluated while all its weights are 0 or while something it needs is missing, so a scene
 pays for nothing it does not use. Weights ramp as ``schedule.loss_weights`` says for its
-``ramp`` kind; ``phases`` names the phases in which it acts.
+``ramp`` kind; ``phases`` names the phases in which it acts, unless the term has a ``phase_key``:
+a ``[loss]`` key (with its default) holding the first phase it acts in, 2 or 3, for the user to set.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ class Term:
     weights: tuple             # ((key in [loss], default weight), ...)
     per: str = "frame"         # "frame" or "step"
     phases: str = "all"
+    phase_key: tuple | None = None  # (key in [loss], default first phase 2 or 3): overrides ``phases``
     ramp: str | None = None
     needs: tuple = ()
 

@@ -48,4 +48,5 @@ class CoherenceTerm(Term):
         return w["coherence"] * velocity_incoherence(v, f.neighbours(), f.means, ctx.h)
 
 
-COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phases="residuals", needs=("decoder", "residuals"))
+COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phase_key=("coherence_from", 3),
+                          needs=("decoder", "residuals"))
