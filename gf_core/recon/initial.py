@@ -159,6 +159,12 @@ def floor_known(source: str) -> bool:
     return source in ("config", "dataset") or "floor from" in source
 
 
+def walls_known(source: str) -> bool:
+    """Whether a scene box of ``source`` (``scene_box``) is the real container, walls and all: a box
+    given in the config or the dataset; not one guessed from the cameras (with or without a floor)."""
+    return source in ("config", "dataset")
+
+
 def in_hull(P: np.ndarray, views: list[tuple[Camera, torch.Tensor]], threshold: float = 0.5) -> np.ndarray:
     """(M,) bool: which points P (M, 3) are inside the visual hull of the masks ``views``
     [(camera, alpha (H, W))]: seen by at least one view, and on the fluid (alpha >= threshold) in

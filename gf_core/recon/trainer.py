@@ -31,7 +31,7 @@ from .config import ReconConfig
 from .context import Context, Frame, Step
 from .decoder import TimeMap, mlp_low_precision
 from .guide import simulate_guide
-from .initial import start
+from .initial import start, walls_known
 from .model import FluidModel
 from .result import result_config
 from .runlog import RunLog
@@ -244,7 +244,13 @@ class Trainer:
 
     def start_guide(self) -> None:
         """``[guide]``: the position residuals start where a simulation from the decoded particles
-        carries them, and loss.residual_motion measures against that (recon/guide.py)."""
+        carries them, and loss.residual_motion measures against that (recon/guide.py). Only in a
+        known container: in a box guessed from the cameras the simulated fluid would spread to walls
+        that are not there, and the residuals would follow it away from the images."""
+        if not walls_known(self.box_source):
+            self.log(f"guide: not simulated: the container is not known (the scene box is a guess: "
+                     f"{self.box_source}); give it with --scene-box=X0,Y0,Z0,X1,Y1,Z1 to use guide.solver")
+            return
         guide, report = simulate_guide(self.model, self.views.unique_times, self.cfg.guide, spacing=self.ctx.spacing,
                                        log=self.log)
         with torch.no_grad():

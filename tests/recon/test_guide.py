@@ -118,6 +118,34 @@ def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
                      phases={"freeze_decoder": False}).validate()
 
 
+def test_without_a_known_container_the_guide_is_not_simulated(small_blob, tmp_path):
+    """A dataset without a scene box: the box is a guess from the cameras, whose walls are not the
+    container's, so the guide is skipped with a line that says how to give the container; the run
+    trains on and recon.h5 has no guide report. The same data with its box given is guided."""
+    import json
+    import shutil
+
+    root = tmp_path / "nobox"
+    shutil.copytree(small_blob, root)
+    for split in ("train", "test"):
+        p = root / f"transforms_{split}.json"
+        meta = json.loads(p.read_text())
+        box = meta.pop("scene_box")
+        p.write_text(json.dumps(meta))
+    lines = []
+    cfg = quick_config(phases={"iterations": 90}, guide={"solver": "pbf", "start": 0.0})
+    reconstruct(load_dataset(root), tmp_path / "guess", cfg, log=lines.append)
+    assert any(s.startswith("guide: not simulated: the container is not known") and "--scene-box" in s for s in lines)
+    assert not any(s.startswith("guide: pbf from") for s in lines)
+    r = read_recon(tmp_path / "guess" / "recon.h5")
+    assert "guide" not in r.metrics and np.isfinite(r.means).all()
+    lines.clear()
+    given = quick_config(phases={"iterations": 90}, guide={"solver": "pbf", "start": 0.0}, model={"scene_box": box})
+    reconstruct(load_dataset(root), tmp_path / "given", given, log=lines.append)
+    assert any(s.startswith("guide: pbf from") for s in lines)
+    assert read_recon(tmp_path / "given" / "recon.h5").metrics["guide"]["steps"] > 0
+
+
 def test_a_contact_start_simulates_from_the_frame_before_the_fluid_meets_the_floor(blob, tmp_path):
     """``start_at = "contact"``: the decoded fluid sinks at a constant speed; the simulation starts
     at the last frame before 5 % of the particles come within a spacing of the box's floor, the
