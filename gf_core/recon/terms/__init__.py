@@ -5,8 +5,9 @@ plus its line here; its weight is a key of the presets (``[loss]``), which ``con
 takes from this list. Weights of 0 compute nothing.
 
 Per decoded time (the mean over the step's times): settle, gravity, container, density, floor, smooth,
-residual_motion, coherence, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
-the step's images), hull (all its masked images), motion, incompressible (across its times)."""
+residual_motion, volume, aniso, opacity, color. Per step: image (Eq. 11's L_rgb, L_d-ssim over all
+the step's images), hull (all its masked images), motion, incompressible (across its times),
+coherence (at one of its times)."""
 
 from __future__ import annotations
 

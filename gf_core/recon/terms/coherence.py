@@ -8,7 +8,9 @@ penalises each particle's velocity against its neighbours' kernel-weighted mean,
 The velocity at a training frame is the central difference of the decoded positions at its
 neighbouring training frames (the Hermite residuals' tangent there; one-sided at the clip's ends).
 The neighbours and their poly6 weights (Eq. 6) are the density term's lists at the drawn frame,
-the weights held fixed (the term moves velocities, not particles towards each other)."""
+the weights held fixed (the term moves velocities, not particles towards each other). The term is
+taken once per step, at the step's first decoded time (drawn at random like the others): its two
+extra decodes per step rather than per time, with the per-time mean as its expectation."""
 
 from __future__ import annotations
 
@@ -47,6 +49,9 @@ class CoherenceTerm(Term):
         v = (dp[1] - dp[0]) * (frame / ((taus[1] - taus[0]) * ctx.spacing))  # particle spacings per frame
         return w["coherence"] * velocity_incoherence(v, f.neighbours(), f.means, ctx.h)
 
+    def step(self, ctx, s, w):
+        return self.frame(ctx, s.frames[0], w)
 
-COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phase_key=("coherence_from", 3),
+
+COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phase_key=("coherence_from", 3), per="step",
                           needs=("decoder", "residuals"))
