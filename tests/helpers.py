@@ -5,6 +5,23 @@ import numpy as np
 from gf_core.recon.config import make_config
 
 
+def without_scene_box(src, dst):
+    """A copy of the NeRF-layout dataset ``src`` at ``dst`` whose transforms files carry no scene box,
+    as real footage comes; returns (dst, the box that was removed)."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    dst = Path(dst)
+    shutil.copytree(src, dst)
+    for split in ("train", "test"):
+        p = dst / f"transforms_{split}.json"
+        meta = json.loads(p.read_text())
+        box = meta.pop("scene_box")
+        p.write_text(json.dumps(meta))
+    return dst, box
+
+
 def quiet(*a, **k):
     pass
 

@@ -12,7 +12,7 @@ from gf_core.recon.context import Frame
 from gf_core.recon.schedule import Plateau
 from gf_core.recon.terms import RESIDUAL_MOTION
 from gf_core.recon.trainer import Trainer, reconstruct
-from helpers import quick_config, quiet, small_config
+from helpers import quick_config, quiet, small_config, without_scene_box
 
 G = 9.81  # the simulators' gravity, m/s^2 along -z
 
@@ -122,16 +122,7 @@ def test_without_a_known_container_the_guide_is_not_simulated(small_blob, tmp_pa
     """A dataset without a scene box: the box is a guess from the cameras, whose walls are not the
     container's, so the guide is skipped with a line that says how to give the container; the run
     trains on and recon.h5 has no guide report. The same data with its box given is guided."""
-    import json
-    import shutil
-
-    root = tmp_path / "nobox"
-    shutil.copytree(small_blob, root)
-    for split in ("train", "test"):
-        p = root / f"transforms_{split}.json"
-        meta = json.loads(p.read_text())
-        box = meta.pop("scene_box")
-        p.write_text(json.dumps(meta))
+    root, box = without_scene_box(small_blob, tmp_path / "nobox")
     lines = []
     cfg = quick_config(phases={"iterations": 90}, guide={"solver": "pbf", "start": 0.0})
     reconstruct(load_dataset(root), tmp_path / "guess", cfg, log=lines.append)

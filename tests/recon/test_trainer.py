@@ -19,7 +19,7 @@ from gf_core.recon.decoder import DecoderConfig, TimeMap
 from gf_core.recon.model import FluidModel
 from gf_core.recon.trainer import ReconstructionError, Trainer, reconstruct
 from gf_core.synthetic import falling_blob, splat_dataset
-from helpers import quick_config, quiet, small_config
+from helpers import quick_config, quiet, small_config, without_scene_box
 
 
 def test_frozen_decoder_leaves_theta_and_phi_as_phase_2_left_them(blob, tmp_path):
@@ -342,13 +342,7 @@ def test_scene_box_and_floor_options_refuse_bad_values_in_one_line(small_blob, t
 
 
 def test_scene_box_and_floor_reach_the_trainer_and_recon_h5(small_blob, tmp_path):
-    root = tmp_path / "nobox"
-    shutil.copytree(small_blob, root)
-    for split in ("train", "test"):
-        p = root / f"transforms_{split}.json"
-        meta = json.loads(p.read_text())
-        box = meta.pop("scene_box")
-        p.write_text(json.dumps(meta))
+    root, box = without_scene_box(small_blob, tmp_path / "nobox")
     ds = load_dataset(root)
     said = []
     # a blob that falls through the clip rests on no floor: none is seen in its masks
