@@ -257,6 +257,7 @@ RANGES = {
     "densify.clone_max_scale": (0.0, 100.0, False), "densify.prune_opacity": (0.0, 1.0, False),
     "densify.prune_max_scale": (0.0, 1e3, True),
     "guide.start": (0.0, 1e6, False), "guide.viscosity": (0.0, 1e3, False),
+    "guide.viscosity_fit": (0.0, 1e3, False), "guide.fit_frames": (1, 10**4, False),
     "train.seed": (0, 2**63 - 1, False), "train.views_per_step": (0, 10**4, False),
     "train.times_per_step": (1, 10**4, False), "train.log_every": (1, 10**8, False),
     "train.eval_every": (1, 10**8, False), "train.eval_frames": (0, 10**6, False),

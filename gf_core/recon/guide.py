@@ -22,7 +22,7 @@ the position residuals that decode to them (the current ones before the start), 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -33,6 +33,7 @@ SOLVERS = ("none", "dfsph", "pbf")
 BEFORE = ("decoder", "ballistic")
 START_AT = ("seconds", "contact")
 CONTACT_FRACTION = 0.05  # start_at = "contact": the share of the particles near a wall that makes a contact
+FIT_CAP = 4.0            # viscosity_fit: nearest distances are capped at this many particle spacings
 
 
 @dataclass
@@ -44,6 +45,9 @@ class GuideConfig:
     start_at: str = "seconds"  # seconds (``start``) | contact (the frame before the fluid first meets a wall)
     viscosity: float = 0.0    # the simulated fluid's kinematic viscosity (m^2/s)
     before: str = "decoder"   # the frames before the start: decoder (as decoded) | ballistic (free flight back)
+    # candidate viscosities (m^2/s): the one whose short run fits the decoded motion best is simulated
+    viscosity_fit: list = field(default_factory=list)
+    fit_frames: int = 6       # viscosity_fit: the frames after the start each candidate is compared over
 
     def validate(self, where: str) -> "GuideConfig":
         if self.solver not in SOLVERS:
@@ -52,6 +56,8 @@ class GuideConfig:
             raise InputError(where, f"guide.start_at must be one of {', '.join(START_AT)}, got {self.start_at!r}")
         if self.before not in BEFORE:
             raise InputError(where, f"guide.before must be one of {', '.join(BEFORE)}, got {self.before!r}")
+        if self.viscosity_fit and self.solver == "none":
+            raise InputError(where, "guide.viscosity_fit needs a guide.solver (dfsph or pbf)")
         return self
 
 
@@ -96,6 +102,33 @@ def guide_start(cfg: GuideConfig, times, decoded: torch.Tensor, lo, hi, spacing:
     return j0, {"start_at": "contact", "contact_frame": c}
 
 
+def chamfer_spacings(a: torch.Tensor, b: torch.Tensor, spacing: float, cap: float = FIT_CAP) -> float:
+    """The symmetric Chamfer distance between point sets ``a`` and ``b`` ((N, 3), (M, 3)): the mean
+    of both directions' nearest distances, in particle spacings, each capped at ``cap`` spacings."""
+    from ..sph.neighbors import knn
+
+    r = cap * spacing
+    da = knn(a, 1, r, b)[1][:, 0].clamp_max(r)
+    db = knn(b, 1, r, a)[1][:, 0].clamp_max(r)
+    return float(0.5 * (da.mean() + db.mean()) / spacing)
+
+
+def fit_viscosity(cfg: GuideConfig, continuation, decoded: torch.Tensor, spacing: float) -> tuple[float, list]:
+    """The viscosity of ``cfg.viscosity_fit`` whose continuation over the ``cfg.fit_frames`` frames
+    after the start stays closest to the decoded particles there (``decoded`` (K + 1, N, 3), the
+    start frame first): the symmetric Chamfer distance (``chamfer_spacings``) averaged over those
+    frames. ``continuation(viscosity)`` -> the simulated positions there (K + 1, N, 3). The
+    images show how far the fluid spreads after it lands: a viscous fluid slumps, water runs up
+    the walls. Returns the best viscosity and every candidate's score."""
+    k = decoded.shape[0] - 1
+    scores = []
+    for nu in cfg.viscosity_fit:
+        pos = continuation(nu).to(decoded.dtype)
+        scores.append(float(np.mean([chamfer_spacings(pos[i], decoded[i], spacing) for i in range(1, k + 1)])))
+    best = int(np.argmin(scores))
+    return float(cfg.viscosity_fit[best]), [{"viscosity": nu, "chamfer": sc} for nu, sc in zip(cfg.viscosity_fit, scores)]
+
+
 @torch.no_grad()
 def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=print) -> tuple[torch.Tensor, dict]:
     """The position residuals (N, F, 3) that put each particle where a simulation from the start
@@ -125,33 +158,50 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=prin
     domain = Domain(tuple(map(float, model.bounds.lo)), tuple(map(float, model.bounds.hi)))
     dev = model.means.device
     wall0 = time.perf_counter()
-    sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=cfg.viscosity, device=dev,
-                               where="guide")
-    vel = smoothed_velocities(held, vel, 2.0 * sol.spacing)
-    x, v, _ = prepare_particles(held.cpu().numpy(), vel.cpu().numpy(), sol.domain, sol.spacing)
-    frames = int(round((times[-1] - times[j0]) / dt))
-    res = run_frames(sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
-                     torch.as_tensor(v, dtype=torch.float32, device=dev), fps=1.0 / dt, seconds=frames * dt)
-    positions = np.stack(res.positions)  # (frames + 1, N, 3)
-    k = np.clip(np.rint((times[j0:] - times[j0]) / dt).astype(np.int64), 0, len(positions) - 1)
-    pos = torch.as_tensor(positions[k], dtype=out.dtype, device=out.device)  # (F - j0, N, 3)
+
+    def continuation(viscosity: float, last: int) -> torch.Tensor:
+        """The decoded particles at the start frame simulated through the training frame ``last``:
+        their positions at the training frames j0..last, (last - j0 + 1, N, 3)."""
+        frames = int(round((times[last] - times[j0]) / dt))
+        sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=viscosity, device=dev,
+                                   where="guide")
+        v0 = smoothed_velocities(held, vel, 2.0 * sol.spacing)
+        x, v, _ = prepare_particles(held.cpu().numpy(), v0.cpu().numpy(), sol.domain, sol.spacing)
+        res = run_frames(sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
+                         torch.as_tensor(v, dtype=torch.float32, device=dev), fps=1.0 / dt, seconds=frames * dt)
+        report.update(steps=report.get("steps", 0) + len(res.steps), spacing=float(sol.spacing))
+        continuation.g = sol.g
+        positions = np.stack(res.positions)  # (frames + 1, N, 3), dt apart
+        k = np.clip(np.rint((times[j0:last + 1] - times[j0]) / dt).astype(np.int64), 0, len(positions) - 1)
+        return torch.as_tensor(positions[k], dtype=out.dtype, device=out.device)
+
+    viscosity = cfg.viscosity
+    if cfg.viscosity_fit:
+        kf = min(cfg.fit_frames, len(times) - 1 - j0)
+        viscosity, fits = fit_viscosity(cfg, lambda nu: continuation(nu, j0 + kf), held_all[j0:j0 + kf + 1], spacing)
+        report["viscosity_fit"] = fits
+        log("guide: viscosity fit over " + f"{kf} frames: " + ", ".join(
+            f"{f['viscosity']:g} m^2/s -> {f['chamfer']:.3f}" for f in fits) + f" spacings; {viscosity:g} chosen")
+    report["viscosity"] = viscosity
+    pos = continuation(viscosity, len(times) - 1)  # (F - j0, N, 3)
     out[:, j0:] += (pos - decoded[j0:]).transpose(0, 1)
     if cfg.before == "ballistic" and j0 > 0:
-        g = sol.g.to(dtype=out.dtype, device=out.device)
+        g = continuation.g.to(dtype=out.dtype, device=out.device)
         dt_back = torch.as_tensor(times[:j0] - times[j0], dtype=out.dtype, device=out.device)[:, None, None]
         fly = held[None] + vel[None] * dt_back + 0.5 * g * dt_back * dt_back  # (j0, N, 3)
         out[:, :j0] += (fly - decoded[:j0]).transpose(0, 1)
     if not bool(torch.isfinite(out).all()):
         raise InputError("guide", f"the {cfg.solver} continuation from {times[j0]:.3f} s is not finite")
-    report.update(start_s=float(times[j0]), steps=len(res.steps), spacing=float(sol.spacing),
-                  wall_s=round(time.perf_counter() - wall0, 2))
+    report.update(start_s=float(times[j0]), wall_s=round(time.perf_counter() - wall0, 2))
     why = "" if cfg.start_at == "seconds" else (
         " (no contact with the box's faces)" if how["contact_frame"] is None else
         f" (the fluid meets the box at frame {how['contact_frame']})")
     log(f"guide: {cfg.solver} from {times[j0]:.3f} s{why} through {report['frames']} frames, {len(model)} particles, "
-        f"spacing {sol.spacing * 1000:.1f} mm, {report['steps']} steps in {report['wall_s']:.0f} s")
+        f"spacing {report['spacing'] * 1000:.1f} mm, viscosity {viscosity:g} m^2/s, {report['steps']} steps in "
+        f"{report['wall_s']:.0f} s")
     return out, report
 
 
 __all__ = ["GuideConfig", "simulate_guide", "start_frame", "guide_start", "contact_frame", "smoothed_velocities",
+           "chamfer_spacings", "fit_viscosity",
            "SOLVERS", "BEFORE", "START_AT"]

@@ -193,3 +193,38 @@ def test_the_start_velocities_average_the_shuffle_out_and_keep_a_common_motion()
     got = smoothed_velocities(g, shuffled, 0.02)
     interior = ((g > 0.015) & (g < 0.055)).all(-1)
     assert float((got - common)[interior].norm(dim=-1).max()) < 0.35 * float(np.sqrt(3))
+
+
+def test_the_viscosity_fit_picks_the_viscosity_the_decoded_motion_follows(blob, tmp_path):
+    """``guide.viscosity_fit``: the decoded fluid lands on the floor at 2 m/s, and from the start
+    frame on it follows a PBF continuation at a known viscosity (water's or a thick liquid's). Of
+    the candidates, the fit chooses the one the motion follows, simulates with it and reports every
+    candidate's Chamfer distance (not 0 for the one followed: its start velocity is measured from
+    the decoded frames either side, as in a run)."""
+    from gf_core.recon.guide import GuideConfig, simulate_guide
+
+    tr = guided_trainer(blob, tmp_path)
+    dec, times, model = tr.model.decoder, tr.views.unique_times, tr.model
+    j0 = 5
+    with torch.no_grad():
+        z = model.at(float(times[j0]))["means"][:, 2]
+    lift = float(model._lo[2]) + 0.5 * tr.ctx.spacing - float(z.min())  # the lowest particle half a spacing up
+    t = torch.as_tensor(times - times[j0], dtype=torch.float32)
+    landing = torch.stack([torch.zeros_like(t), torch.zeros_like(t), lift - 2.0 * t], -1)[None]  # (1, F, 3)
+    for nu in (0.0, 0.2):
+        with torch.no_grad():
+            dec.residual_dp.copy_(landing.expand_as(dec.residual_dp))
+        follow, _ = simulate_guide(model, times, GuideConfig(solver="pbf", start=0.45, viscosity=nu),
+                                   spacing=tr.ctx.spacing, log=quiet)
+        with torch.no_grad():
+            dec.residual_dp.copy_(follow)
+        lines = []
+        fit = GuideConfig(solver="pbf", start=0.45, viscosity_fit=[0.0, 0.2], fit_frames=2)
+        _, report = simulate_guide(model, times, fit, spacing=tr.ctx.spacing, log=lines.append)
+        scores = {f["viscosity"]: f["chamfer"] for f in report["viscosity_fit"]}
+        assert report["viscosity"] == nu and scores[nu] < 0.8 * scores[0.2 - nu], scores
+        assert any(s.startswith("guide: viscosity fit over 2 frames") and f"; {nu:g} chosen" in s for s in lines)
+    with pytest.raises(InputError, match="guide.viscosity_fit needs a guide.solver"):
+        small_config(guide={"viscosity_fit": [0.0, 0.1]}).validate()
+    with pytest.raises(InputError, match=r"guide.viscosity_fit must be in \[0, 1000\]"):
+        small_config(guide={"solver": "pbf", "viscosity_fit": [0.0, -0.1]}).validate()
