@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .. import native
 from ..errors import ReconstructionError
 from ..formats.hdf5 import output_lock, write_recon
 from ..render import render
@@ -281,6 +282,7 @@ class Trainer:
             self.initialise()
             self.plateau = Plateau(self.cfg.phases.plateau_window, self.cfg.phases.plateau_tol)
             runlog.restart()
+        native.load()  # a first use compiles the extension (a minute or so): not part of the time budget
         t_start = time.perf_counter() - self.elapsed
         last_test, budget = None, self.cfg.train.time_budget_s
         try:

@@ -105,6 +105,31 @@ def test_a_run_with_a_time_budget_uses_it_all_and_says_why_each_phase_ended(smal
     assert m["iterations"] == 60 and all("iteration cap" in e["reason"] for e in m["phase_ends"])
 
 
+def test_the_native_build_is_not_part_of_the_time_budget(small_blob, tmp_path, monkeypatch):
+    """A first use compiles the native extension (a minute or so on a fresh checkout): that is done
+    before the clock of the time budget starts. Here the first load takes 4 s; the first logged
+    step still comes within a second or two of the start."""
+    import json
+    import time
+
+    from gf_core import native
+
+    real, calls = native.load, []
+
+    def slow_first_load():
+        if not calls:
+            time.sleep(4.0)
+        calls.append(1)
+        return real()
+
+    monkeypatch.setattr(native, "load", slow_first_load)
+    cfg = quick_config(phases={"iterations": 15}, train={"time_budget_s": 8.0, "eval_every": 10_000, "log_every": 1})
+    m = reconstruct(load_dataset(small_blob), tmp_path / "run", cfg, log=quiet)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert calls and rows[0]["wall_s"] < 2.0, rows[0]
+    assert m["wall_s"] >= 0.95 * 8.0
+
+
 def test_without_a_budget_a_phase_still_improving_at_its_cap_goes_on_to_its_plateau(small_blob, tmp_path):
     """Without a time budget the caps set the schedule, not the end: a phase whose image loss still
     improves at its cap goes on until the plateau test ends it, at most phases.limit_factor x its
