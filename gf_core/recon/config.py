@@ -50,10 +50,11 @@ _LOSS_CLASSES: dict = {}
 def loss_config_class():
     """[loss]: a weight per key of the registered terms (``terms.TERMS``), with its default (the
     paper's Table 1 for its terms), each a non-negative number (0 computes nothing); and how the
-    image loss is taken; for a term with a ``phase_key``, the first phase (2 or 3) it acts in. Made
-    from the registry, so a new term's key is a config key at once."""
+    image loss is taken; for a term with a ``phase_key``, the first phase (2 or 3) it acts in; for
+    one with an ``every_key``, every how many iterations it is taken. Made from the registry, so a
+    new term's key is a config key at once."""
     weights = tuple(terms.default_weights().items())
-    starts = tuple(terms.phase_keys().items())
+    starts = tuple(terms.phase_keys().items()) + tuple(terms.every_keys().items())
     if (weights, starts) not in _LOSS_CLASSES:
         _LOSS_CLASSES[(weights, starts)] = dataclasses.make_dataclass("LossConfig", [
             *[(k, float, field(default=v)) for k, v in weights],
@@ -241,6 +242,7 @@ RANGES = {
     "decoder.hidden_width": (1, 8192, False), "decoder.n_freqs": (0, 20, False),
     "decoder.canonical_time": (0.0, 1.0, False),
     "loss.blur_start": (0.0, 0.5, False), **{f"loss.{k}": (2, 3, False) for k in terms.phase_keys()},
+    **{f"loss.{k}": (1, 1000, False) for k in terms.every_keys()},
     "density.h_factor": (0.0, 10.0, True), "density.k": (1, 1024, False), "density.refresh_every": (1, 10**8, False),
     **{f"lr.{k}": _LR for k in ("means", "log_scales", "quats", "logit_opacity", "sh_dc", "sh_rest", "features", "mlp")},
     "lr.means_final": (0.0, 1.0, True), "lr.canonical_dynamic": (0.0, 100.0, False),

@@ -103,11 +103,13 @@ def blur(cfg: ReconConfig, phase: int, phase_progress: float) -> float:
     return cfg.loss.blur_start * (1.0 - window_width(cfg, phase, phase_progress)) if phase == 2 else 0.0
 
 
-def loss_weights(cfg: ReconConfig, phase: int, ramp_progress: float) -> dict:
+def loss_weights(cfg: ReconConfig, phase: int, ramp_progress: float, iteration: int | None = None) -> dict:
     """Every ``[loss]`` weight in ``phase`` (1-3) at ramp progress ``ramp_progress`` in [0, 1]: a
     term's final weight, 0 outside the phases it acts in (``Term.phases``, or from the phase its
     ``Term.phase_key`` holds), ramped as its kind says
-    (``Term.ramp``: Eq. 11's schedules of lambda_d and of lambda_a / lambda_v above)."""
+    (``Term.ramp``: Eq. 11's schedules of lambda_d and of lambda_a / lambda_v above). At
+    ``iteration``, a term with an ``every_key`` k > 1 weighs k times as much at every k-th
+    iteration and 0 between."""
     lo, ph = cfg.loss, cfg.phases
     r = ph.phase1_reg
     on = {"all": True, "dynamic": phase > 1, "residuals": phase >= ph.residuals_from}
@@ -124,6 +126,9 @@ def loss_weights(cfg: ReconConfig, phase: int, ramp_progress: float) -> dict:
                 w[key] = r * base if phase < 3 else base * (r + (1 - r) * ramp_progress)
             else:
                 w[key] = base
+            k = getattr(lo, t.every_key[0]) if t.every_key else 1
+            if k > 1 and iteration is not None:
+                w[key] = w[key] * k if iteration % k == 0 else 0.0
     return w
 
 

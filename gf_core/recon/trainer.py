@@ -130,7 +130,7 @@ class Trainer:
             phase_progress, run_progress = schedule.progress(cfg, self.phase, self.phase_it, self.elapsed,
                                                              self.phase_t0, self.static)
         ctx.phase = self.phase
-        w = schedule.loss_weights(cfg, self.phase, schedule.ramp(cfg, phase_progress))
+        w = schedule.loss_weights(cfg, self.phase, schedule.ramp(cfg, phase_progress), self.iteration)
         self.set_rates(run_progress, phase_progress)
         use_dec = self.phase > 1 and not self.static
         active = [t for t in registry.TERMS if any(w[k] > 0 for k in t.keys()) and all(ctx.has(n) for n in t.needs)]

@@ -542,6 +542,28 @@ def test_coherence_from_2_trains_the_decoder_in_phase_2(small_blob, tmp_path):
     assert phases_logged(off, "off") == {3}
 
 
+def test_coherence_every_k_takes_the_term_at_every_kth_iteration_at_k_times_its_weight(small_blob, tmp_path):
+    """loss.coherence_every = k: the weight is k x coherence at iterations divisible by k and 0 (the
+    term not computed) between, the same weight per iteration on average; a run logs the term at
+    those iterations only. k < 1 is refused."""
+    from gf_core.recon import schedule
+
+    cfg = quick_config(phases={"iterations": 90}, train={"log_every": 1},
+                       loss={"coherence": 0.01, "coherence_from": 2, "coherence_every": 3})
+    ws = [schedule.loss_weights(cfg, 2, 1.0, it)["coherence"] for it in range(9)]
+    assert ws == pytest.approx([0.03, 0, 0] * 3)
+    assert schedule.loss_weights(cfg, 2, 1.0)["coherence"] == 0.01  # no iteration: the weight as set
+    assert schedule.loss_weights(cfg, 1, 1.0, 3)["coherence"] == 0.0  # not before coherence_from
+    with pytest.raises(InputError, match=r"loss.coherence_every must be in \[1, 1000\]"):
+        quick_config(loss={"coherence_every": 0})
+    reconstruct(load_dataset(small_blob), tmp_path / "run", cfg, log=quiet)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    taken = [r for r in rows if r["phase"] >= 2 and "coherence" in r["terms"]]
+    skipped = [r for r in rows if r["phase"] >= 2 and "coherence" not in r["terms"]]
+    assert taken and skipped and len(skipped) > len(taken)
+    assert len({r["iteration"] % 3 for r in taken}) == 1 and len({r["iteration"] % 3 for r in skipped}) == 2
+
+
 def test_density_spread_is_zero_for_one_volume_and_pulls_frames_together():
     """incompressible.density_spread: 0 when every frame has the same mean density (however the
     particles sit); a frame packed tighter than another raises it, and the gradient spreads the

@@ -63,10 +63,16 @@ def phase_keys(terms=None) -> dict:
     return dict(t.phase_key for t in (TERMS if terms is None else terms) if t.phase_key is not None)
 
 
+def every_keys(terms=None) -> dict:
+    """Every ``[loss]`` key that sets how often a term is taken (``Term.every_key``), with its default."""
+    return dict(t.every_key for t in (TERMS if terms is None else terms) if t.every_key is not None)
+
+
 def check_registry(terms=None) -> None:
     """Names and weight keys unique; ``per``, ``phases``, ``ramp`` and ``needs`` known."""
     terms = TERMS if terms is None else terms
-    names, keys = [t.name for t in terms], list(weight_keys(terms)) + list(phase_keys(terms))
+    names = [t.name for t in terms]
+    keys = list(weight_keys(terms)) + list(phase_keys(terms)) + list(every_keys(terms))
     for what, seq in (("term name", names), ("weight key", keys)):
         dup = {x for x in seq if seq.count(x) > 1}
         if dup:
@@ -77,6 +83,8 @@ def check_registry(terms=None) -> None:
             raise ValueError(f"loss term {t.name}: unknown per / phases / ramp / needs")
         if t.phase_key is not None and (len(t.phase_key) != 2 or t.phase_key[1] not in (2, 3)):
             raise ValueError(f"loss term {t.name}: phase_key must be (key, 2 or 3)")
+        if t.every_key is not None and (len(t.every_key) != 2 or not isinstance(t.every_key[1], int) or t.every_key[1] < 1):
+            raise ValueError(f"loss term {t.name}: every_key must be (key, an integer >= 1)")
 
 
 check_registry()

@@ -8,6 +8,8 @@ never evaluated while all its weights are 0 or while something it needs is missi
 pays for nothing it does not use. Weights ramp as ``schedule.loss_weights`` says for its
 ``ramp`` kind; ``phases`` names the phases in which it acts, unless the term has a ``phase_key``:
 a ``[loss]`` key (with its default) holding the first phase it acts in, 2 or 3, for the user to set.
+A costly term may have an ``every_key``: a ``[loss]`` key (default 1) k such that the term is taken
+at every k-th iteration only, at k times its weight (the same expected gradient for 1/k of the cost).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ class Term:
     per: str = "frame"         # "frame" or "step"
     phases: str = "all"
     phase_key: tuple | None = None  # (key in [loss], default first phase 2 or 3): overrides ``phases``
+    every_key: tuple | None = None  # (key in [loss], default 1): taken every k-th iteration at k x its weight
     ramp: str | None = None
     needs: tuple = ()
 

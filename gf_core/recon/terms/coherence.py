@@ -53,5 +53,6 @@ class CoherenceTerm(Term):
         return self.frame(ctx, s.frames[0], w)
 
 
-COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phase_key=("coherence_from", 3), per="step",
+COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phase_key=("coherence_from", 3),
+                          every_key=("coherence_every", 1), per="step",
                           needs=("decoder", "residuals"))
