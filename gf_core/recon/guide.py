@@ -158,10 +158,12 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=prin
     domain = Domain(tuple(map(float, model.bounds.lo)), tuple(map(float, model.bounds.hi)))
     dev = model.means.device
     wall0 = time.perf_counter()
+    gravity = None  # the solver's, for the ballistic frames before the start
 
     def continuation(viscosity: float, last: int) -> torch.Tensor:
         """The decoded particles at the start frame simulated through the training frame ``last``:
         their positions at the training frames j0..last, (last - j0 + 1, N, 3)."""
+        nonlocal gravity
         frames = int(round((times[last] - times[j0]) / dt))
         sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=viscosity, device=dev,
                                    where="guide")
@@ -170,7 +172,7 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=prin
         res = run_frames(sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
                          torch.as_tensor(v, dtype=torch.float32, device=dev), fps=1.0 / dt, seconds=frames * dt)
         report.update(steps=report.get("steps", 0) + len(res.steps), spacing=float(sol.spacing))
-        continuation.g = sol.g
+        gravity = sol.g
         positions = np.stack(res.positions)  # (frames + 1, N, 3), dt apart
         k = np.clip(np.rint((times[j0:last + 1] - times[j0]) / dt).astype(np.int64), 0, len(positions) - 1)
         return torch.as_tensor(positions[k], dtype=out.dtype, device=out.device)
@@ -186,7 +188,7 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=prin
     pos = continuation(viscosity, len(times) - 1)  # (F - j0, N, 3)
     out[:, j0:] += (pos - decoded[j0:]).transpose(0, 1)
     if cfg.before == "ballistic" and j0 > 0:
-        g = continuation.g.to(dtype=out.dtype, device=out.device)
+        g = gravity.to(dtype=out.dtype, device=out.device)
         dt_back = torch.as_tensor(times[:j0] - times[j0], dtype=out.dtype, device=out.device)[:, None, None]
         fly = held[None] + vel[None] * dt_back + 0.5 * g * dt_back * dt_back  # (j0, N, 3)
         out[:, :j0] += (fly - decoded[:j0]).transpose(0, 1)
