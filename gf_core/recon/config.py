@@ -51,18 +51,21 @@ def loss_config_class():
     """[loss]: a weight per key of the registered terms (``terms.TERMS``), with its default (the
     paper's Table 1 for its terms), each a non-negative number (0 computes nothing); and how the
     image loss is taken; for a term with a ``phase_key``, the first phase (2 or 3) it acts in; for
-    one with an ``every_key``, every how many iterations it is taken. Made from the registry, so a
-    new term's key is a config key at once."""
+    one with an ``every_key``, every how many iterations it is taken; for one with a ``guided_key``,
+    whether it acts only with a running guide. Made from the registry, so a new term's key is a config
+    key at once."""
     weights = tuple(terms.default_weights().items())
     starts = tuple(terms.phase_keys().items()) + tuple(terms.every_keys().items())
-    if (weights, starts) not in _LOSS_CLASSES:
-        _LOSS_CLASSES[(weights, starts)] = dataclasses.make_dataclass("LossConfig", [
+    flags = tuple(terms.guided_keys().items())
+    if (weights, starts, flags) not in _LOSS_CLASSES:
+        _LOSS_CLASSES[(weights, starts, flags)] = dataclasses.make_dataclass("LossConfig", [
             *[(k, float, field(default=v)) for k, v in weights],
             *[(k, int, field(default=v)) for k, v in starts],
+            *[(k, bool, field(default=v)) for k, v in flags],
             ("background", str, field(default="random")),  # random | black | white | dataset (recon/sampling.py)
             ("blur_start", float, field(default=0.02)),    # phase 2 starts comparing images blurred by this x width
         ])
-    return _LOSS_CLASSES[(weights, starts)]
+    return _LOSS_CLASSES[(weights, starts, flags)]
 
 
 def LossConfig():  # noqa: N802 - reads as the dataclass it makes

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..sph.neighbors import knn
-from .initial import floor_known
+from .initial import floor_known, walls_known
 
 
 class Context:
@@ -42,6 +42,8 @@ class Context:
             return dec is not None and dec.knots is not None
         if need == "floor":
             return floor_known(self.box_source)
+        if need == "guide":  # the simulated guide runs: a solver is set and the container is known (trainer.start_guide)
+            return dec is not None and self.cfg.guide.solver != "none" and walls_known(self.box_source)
         raise KeyError(need)
 
     def memo(self, key, make: Callable[[], Any]):

@@ -98,6 +98,13 @@ class Trainer:
         self.ctx.spacing, self.ctx.h, self.ctx.box_source = st.spacing, st.h, st.box_source
         if self.cfg.loss.settle > 0 and not self.static and not self.cfg.decoder.residuals:
             self.log("loss.settle is off: it acts through the decoder residuals (decoder.residuals = false)")
+        if not self.static:
+            for t in registry.TERMS:
+                if t.guided_key and getattr(self.cfg.loss, t.guided_key[0]) and any(
+                        getattr(self.cfg.loss, k) > 0 for k in t.keys()) and not self.ctx.has("guide"):
+                    self.log(f"loss.{t.name} is off: it acts with the simulated guide only (loss.{t.guided_key[0]} = "
+                             f"true), which needs guide.solver and a known container (the scene box is from "
+                             f"{self.box_source}; give it with --scene-box=X0,Y0,Z0,X1,Y1,Z1)")
         self._make_optimizer()
 
     def _make_optimizer(self) -> None:
@@ -133,7 +140,8 @@ class Trainer:
         w = schedule.loss_weights(cfg, self.phase, schedule.ramp(cfg, phase_progress), self.iteration)
         self.set_rates(run_progress, phase_progress)
         use_dec = self.phase > 1 and not self.static
-        active = [t for t in registry.TERMS if any(w[k] > 0 for k in t.keys()) and all(ctx.has(n) for n in t.needs)]
+        active = [t for t in registry.TERMS if any(w[k] > 0 for k in t.keys())
+                  and all(ctx.has(n) for n in t.needs_in(cfg.loss))]
         bg = self.sampler.background()
         times = self.sampler.times(self.phase, schedule.window_width(cfg, self.phase, phase_progress))
         per_time = [(t, self.sampler.view_indices(t)) for t in times]
@@ -251,6 +259,9 @@ class Trainer:
         if not walls_known(self.box_source):
             self.log(f"guide: not simulated: the container is not known (the scene box is a guess: "
                      f"{self.box_source}); give it with --scene-box=X0,Y0,Z0,X1,Y1,Z1 to use guide.solver")
+            return
+        if len(self.model) < 2:
+            self.log(f"guide: not simulated: {len(self.model)} particle, no fluid to simulate")
             return
         guide, report = simulate_guide(self.model, self.views.unique_times, self.cfg.guide, spacing=self.ctx.spacing,
                                        log=self.log)

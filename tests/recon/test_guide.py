@@ -1,6 +1,8 @@
 """The simulated guide (``[guide]``, recon/guide.py): the residual phase starts where a simulation
 from the decoded particles carries them, and loss.residual_motion measures against it."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -18,7 +20,7 @@ G = 9.81  # the simulators' gravity, m/s^2 along -z
 
 
 def guided_trainer(blob, tmp_path, **guide):
-    cfg = small_config(guide={"solver": "pbf", "start": 0.45, **guide})
+    cfg = small_config(guide={"solver": "pbf", "start_at": "seconds", "start": 0.45, "viscosity_fit": [], **guide})
     tr = Trainer(cfg, load_dataset(blob), out=tmp_path / "run", log=quiet)
     tr.initialise()
     return tr
@@ -104,7 +106,7 @@ def test_the_guide_follows_densification_and_checkpoints(blob, tmp_path):
 
 def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
     lines = []
-    cfg = quick_config(guide={"solver": "pbf", "start": 0.35})
+    cfg = quick_config(guide={"solver": "pbf", "start_at": "seconds", "start": 0.35, "viscosity_fit": []})
     metrics = reconstruct(load_dataset(blob), tmp_path / "run", cfg, log=lines.append)
     assert any(s.startswith("guide: pbf from") for s in lines)
     r = read_recon(tmp_path / "run" / "recon.h5")
@@ -118,22 +120,44 @@ def test_a_guided_run_trains_and_logs_its_simulation(blob, tmp_path):
                      phases={"freeze_decoder": False}).validate()
 
 
-def test_without_a_known_container_the_guide_is_not_simulated(small_blob, tmp_path):
+def test_without_a_known_container_the_guide_and_guided_coherence_are_off(small_blob, tmp_path):
     """A dataset without a scene box: the box is a guess from the cameras, whose walls are not the
     container's, so the guide is skipped with a line that says how to give the container; the run
-    trains on and recon.h5 has no guide report. The same data with its box given is guided."""
+    trains on and recon.h5 has no guide report. loss.coherence with coherence_guided (the water
+    preset's) is off there too, said in one line and never computed; with coherence_guided = false
+    it acts without the guide. The same data with its box given is guided, and coherence acts from
+    phase 2."""
     root, box = without_scene_box(small_blob, tmp_path / "nobox")
     lines = []
-    cfg = quick_config(phases={"iterations": 90}, guide={"solver": "pbf", "start": 0.0})
-    reconstruct(load_dataset(root), tmp_path / "guess", cfg, log=lines.append)
+
+    def terms_logged(run):
+        rows = [json.loads(x) for x in (tmp_path / run / "metrics.jsonl").read_text().splitlines()]
+        return {ph: set().union(*[set(r["terms"]) for r in rows if r["phase"] == ph]) for ph in (2, 3)}
+
+    over = dict(phases={"iterations": 90}, train={"log_every": 1},
+                guide={"solver": "pbf", "start_at": "seconds", "start": 0.0, "viscosity_fit": []},
+                loss={"coherence": 0.01, "coherence_from": 2, "coherence_every": 1, "coherence_guided": True})
+    reconstruct(load_dataset(root), tmp_path / "guess", quick_config(**over), log=lines.append)
     assert any(s.startswith("guide: not simulated: the container is not known") and "--scene-box" in s for s in lines)
+    assert sum(s.startswith("loss.coherence is off: it acts with the simulated guide only") and "--scene-box" in s
+               for s in lines) == 1
     assert not any(s.startswith("guide: pbf from") for s in lines)
+    assert not any("coherence" in t for t in terms_logged("guess").values())
     r = read_recon(tmp_path / "guess" / "recon.h5")
     assert "guide" not in r.metrics and np.isfinite(r.means).all()
+
     lines.clear()
-    given = quick_config(phases={"iterations": 90}, guide={"solver": "pbf", "start": 0.0}, model={"scene_box": box})
+    loose = dict(over, loss=dict(over["loss"], coherence_guided=False))
+    reconstruct(load_dataset(root), tmp_path / "loose", quick_config(**loose), log=lines.append)
+    assert not any(s.startswith("loss.coherence is off") for s in lines)
+    assert all("coherence" in t for t in terms_logged("loose").values())
+
+    lines.clear()
+    given = quick_config(**dict(over, model={"scene_box": box}))
     reconstruct(load_dataset(root), tmp_path / "given", given, log=lines.append)
     assert any(s.startswith("guide: pbf from") for s in lines)
+    assert not any(s.startswith("loss.coherence is off") for s in lines)
+    assert all("coherence" in t for t in terms_logged("given").values())
     assert read_recon(tmp_path / "given" / "recon.h5").metrics["guide"]["steps"] > 0
 
 
@@ -224,7 +248,7 @@ def test_the_viscosity_fit_picks_the_viscosity_the_decoded_motion_follows(blob, 
         scores = {f["viscosity"]: f["chamfer"] for f in report["viscosity_fit"]}
         assert report["viscosity"] == nu and scores[nu] < 0.8 * scores[0.2 - nu], scores
         assert any(s.startswith("guide: viscosity fit over 2 frames") and f"; {nu:g} chosen" in s for s in lines)
-    with pytest.raises(InputError, match="guide.viscosity_fit needs a guide.solver"):
-        small_config(guide={"viscosity_fit": [0.0, 0.1]}).validate()
+    off = small_config(guide={"solver": "none"}).validate()  # turning the guide off needs no other key
+    assert off.guide.viscosity_fit == [0.0, 0.01, 0.1]
     with pytest.raises(InputError, match=r"guide.viscosity_fit must be in \[0, 1000\]"):
         small_config(guide={"solver": "pbf", "viscosity_fit": [0.0, -0.1]}).validate()

@@ -503,14 +503,14 @@ def test_coherence_term_reaches_the_neighbouring_frames_residuals(small_blob, tm
 
 def test_coherence_from_2_trains_the_decoder_in_phase_2(small_blob, tmp_path):
     """loss.coherence_from = 2: the term acts from phase 2, where theta and Phi learn (the residuals
-    wait for phases.residuals_from), and its gradient reaches them there; the default (3) leaves
-    phase 2 without it; any other phase is refused."""
+    wait for phases.residuals_from), and its gradient reaches them there (the water preset's
+    setting); 3 leaves phase 2 without it; any other phase is refused."""
     from gf_core.recon import schedule
     from gf_core.recon.terms import COHERENCE
 
     on = quick_config(phases={"iterations": 90}, loss={"coherence": 0.01, "coherence_from": 2})
-    off = quick_config(phases={"iterations": 90}, loss={"coherence": 0.01})
-    assert off.loss.coherence_from == 3
+    off = quick_config(phases={"iterations": 90}, loss={"coherence": 0.01, "coherence_from": 3})
+    assert quick_config().loss.coherence_from == 2
     assert schedule.loss_weights(on, 2, 1.0)["coherence"] == 0.01
     assert schedule.loss_weights(off, 2, 1.0)["coherence"] == 0.0
     assert schedule.loss_weights(off, 3, 1.0)["coherence"] == 0.01

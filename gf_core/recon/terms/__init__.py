@@ -68,11 +68,16 @@ def every_keys(terms=None) -> dict:
     return dict(t.every_key for t in (TERMS if terms is None else terms) if t.every_key is not None)
 
 
+def guided_keys(terms=None) -> dict:
+    """Every ``[loss]`` key that makes a term act only with a running guide (``Term.guided_key``), with its default."""
+    return dict(t.guided_key for t in (TERMS if terms is None else terms) if t.guided_key is not None)
+
+
 def check_registry(terms=None) -> None:
     """Names and weight keys unique; ``per``, ``phases``, ``ramp`` and ``needs`` known."""
     terms = TERMS if terms is None else terms
     names = [t.name for t in terms]
-    keys = list(weight_keys(terms)) + list(phase_keys(terms)) + list(every_keys(terms))
+    keys = list(weight_keys(terms)) + list(phase_keys(terms)) + list(every_keys(terms)) + list(guided_keys(terms))
     for what, seq in (("term name", names), ("weight key", keys)):
         dup = {x for x in seq if seq.count(x) > 1}
         if dup:
@@ -85,8 +90,11 @@ def check_registry(terms=None) -> None:
             raise ValueError(f"loss term {t.name}: phase_key must be (key, 2 or 3)")
         if t.every_key is not None and (len(t.every_key) != 2 or not isinstance(t.every_key[1], int) or t.every_key[1] < 1):
             raise ValueError(f"loss term {t.name}: every_key must be (key, an integer >= 1)")
+        if t.guided_key is not None and (len(t.guided_key) != 2 or not isinstance(t.guided_key[1], bool)):
+            raise ValueError(f"loss term {t.name}: guided_key must be (key, true or false)")
 
 
 check_registry()
 
-__all__ = ["TERMS", "Term", "weight_keys", "default_weights", "phase_keys", "check_registry"]
+__all__ = ["TERMS", "Term", "weight_keys", "default_weights", "phase_keys", "every_keys", "guided_keys",
+           "check_registry"]

@@ -10,6 +10,8 @@ pays for nothing it does not use. Weights ramp as ``schedule.loss_weights`` says
 a ``[loss]`` key (with its default) holding the first phase it acts in, 2 or 3, for the user to set.
 A costly term may have an ``every_key``: a ``[loss]`` key (default 1) k such that the term is taken
 at every k-th iteration only, at k times its weight (the same expected gradient for 1/k of the cost).
+A term may have a ``guided_key``: a ``[loss]`` key (true / false) that, when true, makes the term act
+only in runs whose simulated guide runs (``[guide]``, in a known container): need "guide".
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import torch
 
 PHASES = ("all", "dynamic", "residuals")     # every phase; phases 2-3; from phases.residuals_from
 RAMPS = (None, "density", "regulariser")     # Eq. 11's schedules of lambda_d and of lambda_a / lambda_v
-NEEDS = ("decoder", "residuals", "floor")    # a decoded time; the decoder's per-frame residuals; a known floor
+NEEDS = ("decoder", "residuals", "floor", "guide")  # a decoded time; the decoder's per-frame residuals; a known
+                                                   # floor; a simulated guide (recon/guide.py) that runs
 
 
 @dataclass(frozen=True)
@@ -31,11 +34,17 @@ class Term:
     phases: str = "all"
     phase_key: tuple | None = None  # (key in [loss], default first phase 2 or 3): overrides ``phases``
     every_key: tuple | None = None  # (key in [loss], default 1): taken every k-th iteration at k x its weight
+    guided_key: tuple | None = None  # (key in [loss], default bool): true = also needs "guide"
     ramp: str | None = None
     needs: tuple = ()
 
     def keys(self) -> tuple:
         return tuple(k for k, _ in self.weights)
+
+    def needs_in(self, loss) -> tuple:
+        """What the term needs under the ``[loss]`` settings ``loss``: ``needs``, and "guide" when
+        its ``guided_key`` is true."""
+        return self.needs + (("guide",) if self.guided_key and getattr(loss, self.guided_key[0]) else ())
 
     def prepare(self, ctx, f, w: dict) -> None:
         """Called once a frame's images are rendered, before any term is evaluated: what a

@@ -10,7 +10,11 @@ neighbouring training frames (the Hermite residuals' tangent there; one-sided at
 The neighbours and their poly6 weights (Eq. 6) are the density term's lists at the drawn frame,
 the weights held fixed (the term moves velocities, not particles towards each other). The term is
 taken once per step, at the step's first decoded time (drawn at random like the others): its two
-extra decodes per step rather than per time, with the per-time mean as its expectation."""
+extra decodes per step rather than per time, with the per-time mean as its expectation.
+
+With ``coherence_guided`` the term acts only where the simulated guide runs (``[guide]``, a known
+container): with the guide's motion to follow after an impact, smoothing the velocities costs the
+impact nothing; without it, the smoothed decoder flattens the impact's motion."""
 
 from __future__ import annotations
 
@@ -31,7 +35,12 @@ def velocity_incoherence(v: torch.Tensor, idx: torch.Tensor, means: torch.Tensor
         w = torch.where(ok, poly6_sq((d * d).sum(-1), h), torch.zeros((), dtype=means.dtype, device=means.device))
         w0 = poly6_sq(torch.zeros((), dtype=means.dtype, device=means.device), h)
         norm = w0 + w.sum(1, keepdim=True)
-    vbar = (w0 * v + (w[..., None] * v[j]).sum(1)) / norm
+        rows = torch.arange(len(idx), device=idx.device)[:, None].expand_as(idx)
+        # the neighbours' weighted sum as a sparse product: its gradient is the transposed product,
+        # the same sums in the same order in every run (a gather's gradient accumulates across threads)
+        W = torch.sparse_coo_tensor(torch.stack([rows[ok], idx[ok]]), (w / norm)[ok].to(v.dtype),
+                                    (len(idx), len(v)), check_invariants=False).coalesce()
+    vbar = (w0 / norm).to(v.dtype) * v + torch.sparse.mm(W, v)
     dv = v - vbar
     return (dv * dv).sum(-1).mean()
 
@@ -54,5 +63,5 @@ class CoherenceTerm(Term):
 
 
 COHERENCE = CoherenceTerm("coherence", (("coherence", 0.0),), phase_key=("coherence_from", 3),
-                          every_key=("coherence_every", 1), per="step",
+                          every_key=("coherence_every", 1), guided_key=("coherence_guided", False), per="step",
                           needs=("decoder", "residuals"))
