@@ -146,8 +146,9 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=prin
     held_all = torch.maximum(torch.minimum(decoded, model._hi), model._lo)  # where the box holds them
     j0, how = guide_start(cfg, times, held_all, model._lo, model._hi, spacing)
     report = {"solver": cfg.solver, **how, "start_frame": j0, "frames": max(len(times) - 1 - j0, 0)}
-    if j0 >= len(times) - 1:
-        log(f"guide: nothing to simulate (start frame {j0} is the clip's last)")
+    if j0 >= len(times) - 1 or len(model) < 2:
+        log(f"guide: nothing to simulate (start frame {j0} is the clip's last)" if len(model) >= 2 else
+            f"guide: nothing to simulate ({len(model)} particle)")
         return out, report
     held = held_all[j0]
     a, b = max(j0 - 1, 0), j0 + 1

@@ -32,7 +32,7 @@ from .config import ReconConfig
 from .context import Context, Frame, Step
 from .decoder import TimeMap, mlp_low_precision
 from .guide import simulate_guide
-from .initial import start, walls_known
+from .initial import start
 from .model import FluidModel
 from .result import result_config
 from .runlog import RunLog
@@ -98,10 +98,9 @@ class Trainer:
         self.ctx.spacing, self.ctx.h, self.ctx.box_source = st.spacing, st.h, st.box_source
         if self.cfg.loss.settle > 0 and not self.static and not self.cfg.decoder.residuals:
             self.log("loss.settle is off: it acts through the decoder residuals (decoder.residuals = false)")
-        if not self.static:
+        if not self.static and not self.ctx.has("guide"):
             for t in registry.TERMS:
-                if t.guided_key and getattr(self.cfg.loss, t.guided_key[0]) and any(
-                        getattr(self.cfg.loss, k) > 0 for k in t.keys()) and not self.ctx.has("guide"):
+                if "guide" in t.needs_in(self.cfg.loss) and any(getattr(self.cfg.loss, k) > 0 for k in t.keys()):
                     self.log(f"loss.{t.name} is off: it acts with the simulated guide only (loss.{t.guided_key[0]} = "
                              f"true), which needs guide.solver and a known container (the scene box is from "
                              f"{self.box_source}; give it with --scene-box=X0,Y0,Z0,X1,Y1,Z1)")
@@ -256,12 +255,9 @@ class Trainer:
         carries them, and loss.residual_motion measures against that (recon/guide.py). Only in a
         known container: in a box guessed from the cameras the simulated fluid would spread to walls
         that are not there, and the residuals would follow it away from the images."""
-        if not walls_known(self.box_source):
+        if not self.ctx.has("guide"):  # the caller checked the solver: the container is not known
             self.log(f"guide: not simulated: the container is not known (the scene box is a guess: "
                      f"{self.box_source}); give it with --scene-box=X0,Y0,Z0,X1,Y1,Z1 to use guide.solver")
-            return
-        if len(self.model) < 2:
-            self.log(f"guide: not simulated: {len(self.model)} particle, no fluid to simulate")
             return
         guide, report = simulate_guide(self.model, self.views.unique_times, self.cfg.guide, spacing=self.ctx.spacing,
                                        log=self.log)
