@@ -159,28 +159,40 @@ def simulate_guide(model, times_s, cfg: GuideConfig, *, spacing: float, log=prin
     wall0 = time.perf_counter()
     gravity = None  # the solver's, for the ballistic frames before the start
 
+    runs = {}  # viscosity -> its simulation so far: [solver, x, v, positions (list, dt apart)]
+
     def continuation(viscosity: float, last: int) -> torch.Tensor:
         """The decoded particles at the start frame simulated through the training frame ``last``:
-        their positions at the training frames j0..last, (last - j0 + 1, N, 3)."""
+        their positions at the training frames j0..last, (last - j0 + 1, N, 3). A viscosity
+        simulated before goes on from where its simulation stopped (the same solver, as an
+        uninterrupted run steps: the fit's candidate is not simulated twice)."""
         nonlocal gravity
         frames = int(round((times[last] - times[j0]) / dt))
-        sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=viscosity, device=dev,
-                                   where="guide")
-        v0 = smoothed_velocities(held, vel, 2.0 * sol.spacing)
-        x, v, _ = prepare_particles(held.cpu().numpy(), v0.cpu().numpy(), sol.domain, sol.spacing)
-        res = run_frames(sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
-                         torch.as_tensor(v, dtype=torch.float32, device=dev), fps=1.0 / dt, seconds=frames * dt)
-        report.update(steps=report.get("steps", 0) + len(res.steps), spacing=float(sol.spacing))
+        if viscosity not in runs:
+            sol = solver_for_particles(held.cpu().numpy(), domain, cfg.solver, viscosity=viscosity, device=dev,
+                                       where="guide")
+            v0 = smoothed_velocities(held, vel, 2.0 * sol.spacing)
+            x, v, _ = prepare_particles(held.cpu().numpy(), v0.cpu().numpy(), sol.domain, sol.spacing)
+            runs[viscosity] = [sol, torch.as_tensor(x, dtype=torch.float32, device=dev),
+                               torch.as_tensor(v, dtype=torch.float32, device=dev), []]
+        sol, x, v, positions = runs[viscosity]
+        done = len(positions) - 1  # frames simulated so far (-1: none, not even the start)
+        if frames > done:
+            res = run_frames(sol, x, v, fps=1.0 / dt, seconds=frames * dt, start_frame=max(done, 0),
+                             measure_every_step=False)
+            positions.extend(res.positions)
+            report.update(steps=report.get("steps", 0) + len(res.steps), spacing=float(sol.spacing))
         gravity = sol.g
-        positions = np.stack(res.positions)  # (frames + 1, N, 3), dt apart
-        k = np.clip(np.rint((times[j0:last + 1] - times[j0]) / dt).astype(np.int64), 0, len(positions) - 1)
-        return torch.as_tensor(positions[k], dtype=out.dtype, device=out.device)
+        k = np.clip(np.rint((times[j0:last + 1] - times[j0]) / dt).astype(np.int64), 0, frames)
+        return torch.as_tensor(np.stack([positions[i] for i in k]), dtype=out.dtype, device=out.device)
 
     viscosity = cfg.viscosity
     if cfg.viscosity_fit:
         kf = min(cfg.fit_frames, len(times) - 1 - j0)
         viscosity, fits = fit_viscosity(cfg, lambda nu: continuation(nu, j0 + kf), held_all[j0:j0 + kf + 1], spacing)
         report["viscosity_fit"] = fits
+        for nu in [nu for nu in runs if nu != viscosity]:
+            del runs[nu]
         log("guide: viscosity fit over " + f"{kf} frames: " + ", ".join(
             f"{f['viscosity']:g} m^2/s -> {f['chamfer']:.3f}" for f in fits) + f" spacings; {viscosity:g} chosen")
     report["viscosity"] = viscosity

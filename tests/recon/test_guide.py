@@ -244,9 +244,15 @@ def test_the_viscosity_fit_picks_the_viscosity_the_decoded_motion_follows(blob, 
             dec.residual_dp.copy_(follow)
         lines = []
         fit = GuideConfig(solver="pbf", start=0.45, viscosity_fit=[0.0, 0.2], fit_frames=2)
-        _, report = simulate_guide(model, times, fit, spacing=tr.ctx.spacing, log=lines.append)
+        fitted, report = simulate_guide(model, times, fit, spacing=tr.ctx.spacing, log=lines.append)
         scores = {f["viscosity"]: f["chamfer"] for f in report["viscosity_fit"]}
         assert report["viscosity"] == nu and scores[nu] < 0.8 * scores[0.2 - nu], scores
+        # the chosen candidate's simulation goes on from the fit's frames: the same guide as one run
+        chosen, alone = simulate_guide(model, times, GuideConfig(solver="pbf", start=0.45, viscosity=nu),
+                                       spacing=tr.ctx.spacing, log=quiet)
+        assert torch.equal(fitted, chosen)
+        one = GuideConfig(solver="pbf", start=0.45, viscosity_fit=[nu], fit_frames=2)
+        assert simulate_guide(model, times, one, spacing=tr.ctx.spacing, log=quiet)[1]["steps"] == alone["steps"]
         assert any(s.startswith("guide: viscosity fit over 2 frames") and f"; {nu:g} chosen" in s for s in lines)
     off = small_config(guide={"solver": "none"}).validate()  # turning the guide off needs no other key
     assert off.guide.viscosity_fit == [0.0, 0.01, 0.1]
